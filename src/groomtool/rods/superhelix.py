@@ -1,0 +1,405 @@
+"""Super-Helix kinematics, gravity and their derivatives, batched over strands (MATH.md section 1).
+
+A strand is N helical elements of lengths l_j with constant material Darboux vectors
+omega_j = q_j = (twist kappa0, kappa1, kappa2).  Frames are 3x3 matrices whose **columns** are
+(n0, n1, n2) in world coordinates, n0 the tangent.  On element j, with t = s - S_j,
+
+    R(s) = R_j exp(t [omega_j]x) = R_j Psi_0(t),      Psi_0(t) = I + c_1 W + c_2 W^2
+    C(s) = C_j + R_j p_j(t),   p_j(t) = Psi_1(t) e0,  Psi_1(t) = t I + c_2 W + c_3 W^2
+    int_0^t p_j = P_j(t) = Psi_2(t) e0,               Psi_2(t) = t^2/2 I + c_3 W + c_4 W^2
+
+(W = [omega]x, c_n from :mod:`groomtool.rods.series`).  Strands are stored padded to the same
+number of elements; a padding element has l = 0 and q = 0 and is the identity.
+
+Derivatives (exact, explicit):
+- a change d omega_k rotates everything beyond S_{k+1} by d theta = Theta_k d omega_k with
+  Theta_k = int_{element k} R ds = R_k Psi_1(l_k), so for a point x beyond element k
+      dC/domega_k = R_k D_k(l_k) + Theta_k dw x (x - C_{k+1})
+                  = B_k - [x]x Theta_k,          B_k = R_k D_k(l_k) + [C_{k+1}]x Theta_k,
+  D(t) = dp(t)/domega; inside its own element dC/domega_e = R_e D_e(t).
+- gravity V = -rhoS g . int C ds, F = -dV/dq, F_k = rhoS G_k^T g with
+      G_k = int dC/domega_k ds = R_k DP_k + m_{k+1} R_k D_k - [X_{k+1}]x Theta_k,
+  m_{k+1} = L - S_{k+1} and X_{k+1} = int_{s > S_{k+1}} (C(s) - C_{k+1}) ds.
+- dF/dq: off-diagonal blocks dF_j/domega_k = -rhoS Theta_j^T [g]x G_k (j < k), diagonal blocks
+  the Hessian of rhoS u . (P_j + m_{j+1} p_j + Q_j Y_j) in omega_j (u = R_j^T g, Y_j = R_{j+1}^T X_{j+1}).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .series import c_table
+
+E0 = np.array([1.0, 0.0, 0.0])
+
+
+# --------------------------------------------------------------------------- small algebra
+def skew(v: np.ndarray) -> np.ndarray:
+    """[v]x such that [v]x a = v x a; v (..., 3) -> (..., 3, 3)."""
+    out = np.zeros(v.shape[:-1] + (3, 3))
+    out[..., 0, 1] = -v[..., 2]
+    out[..., 0, 2] = v[..., 1]
+    out[..., 1, 0] = v[..., 2]
+    out[..., 1, 2] = -v[..., 0]
+    out[..., 2, 0] = -v[..., 1]
+    out[..., 2, 1] = v[..., 0]
+    return out
+
+
+def _psi_apply(alpha, beta, gamma, omega, z, v):
+    """(alpha I + beta W + gamma W^2) v = alpha v + beta w x v + gamma (w (w.v) - z v)."""
+    wv = np.einsum("...i,...i->...", omega, v)
+    return (alpha[..., None] * v + beta[..., None] * np.cross(omega, v)
+            + gamma[..., None] * (omega * wv[..., None] - z[..., None] * v))
+
+
+def _psi_apply_jacobian(beta, dbeta, gamma, dgamma, omega, z, v):
+    """d/domega of (alpha I + beta(z) W + gamma(z) W^2) v, alpha constant; (..., 3, 3)."""
+    wv = np.einsum("...i,...i->...", omega, v)
+    wxv = np.cross(omega, v)
+    w2v = omega * wv[..., None] - z[..., None] * v
+    eye = np.eye(3)
+    jac = -beta[..., None, None] * skew(v)
+    jac += 2.0 * dbeta[..., None, None] * wxv[..., :, None] * omega[..., None, :]
+    jac += gamma[..., None, None] * (omega[..., :, None] * v[..., None, :] + wv[..., None, None] * eye
+                                     - 2.0 * v[..., :, None] * omega[..., None, :])
+    jac += 2.0 * dgamma[..., None, None] * w2v[..., :, None] * omega[..., None, :]
+    return jac
+
+
+def _psi_form_hessian(beta, dbeta, ddbeta, gamma, dgamma, ddgamma, omega, z, u, v):
+    """Hessian in omega of h = u . (alpha I + beta(z) W + gamma(z) W^2) v; (..., 3, 3).
+
+    h = alpha c0 + beta (w . c1) + gamma (P - z c0), c0 = u.v, c1 = v x u, P = (u.w)(v.w).
+    """
+    c0 = np.einsum("...i,...i->...", u, v)
+    c1 = np.cross(v, u)
+    uw = np.einsum("...i,...i->...", u, omega)
+    vw = np.einsum("...i,...i->...", v, omega)
+    wc1 = np.einsum("...i,...i->...", omega, c1)
+    P = uw * vw
+    grad_p = u * vw[..., None] + v * uw[..., None]
+    g = grad_p - 2.0 * c0[..., None] * omega
+    eye = np.eye(3)
+    ww = omega[..., :, None] * omega[..., None, :]
+
+    def s(a):
+        return a[..., None, None]
+
+    hess = s(4.0 * ddbeta * wc1) * ww
+    hess += s(2.0 * dbeta) * (omega[..., :, None] * c1[..., None, :] + c1[..., :, None] * omega[..., None, :])
+    hess += s(2.0 * dbeta * wc1) * eye
+    hess += s(4.0 * ddgamma * (P - z * c0)) * ww
+    hess += s(2.0 * dgamma) * (omega[..., :, None] * g[..., None, :] + g[..., :, None] * omega[..., None, :])
+    hess += s(2.0 * dgamma * (P - z * c0)) * eye
+    hess += s(gamma) * (u[..., :, None] * v[..., None, :] + v[..., :, None] * u[..., None, :] - 2.0 * s(c0) * eye)
+    return hess
+
+
+def local_rotation(t: np.ndarray, omega: np.ndarray) -> np.ndarray:
+    """exp(t [omega]x) by Rodrigues' formula in the c_n form; t (...), omega (..., 3)."""
+    z = np.einsum("...i,...i->...", omega, omega)
+    c, _, _ = c_table(t, z)
+    W = skew(omega)
+    return np.eye(3) + c[1][..., None, None] * W + c[2][..., None, None] * (W @ W)
+
+
+def local_position(t: np.ndarray, omega: np.ndarray) -> np.ndarray:
+    """p(t) = int_0^t exp(tau [omega]x) e0 dtau: the centreline in the element's start frame."""
+    z = np.einsum("...i,...i->...", omega, omega)
+    c, _, _ = c_table(t, z)
+    e0 = np.broadcast_to(E0, omega.shape)
+    return _psi_apply(t, c[2], c[3], omega, z, e0)
+
+
+def local_position_jacobian(t: np.ndarray, omega: np.ndarray) -> np.ndarray:
+    """D(t) = dp(t)/domega, (..., 3, 3)."""
+    z = np.einsum("...i,...i->...", omega, omega)
+    c, dc, _ = c_table(t, z)
+    e0 = np.broadcast_to(E0, omega.shape)
+    return _psi_apply_jacobian(c[2], dc[2], c[3], dc[3], omega, z, e0)
+
+
+# --------------------------------------------------------------------------- data
+@dataclass
+class SuperHelix:
+    """A groom of Super-Helices, padded to ``max_elements`` elements per strand.
+
+    root_positions (S, 3), root_frames (S, 3, 3) with columns (n0 tangent, n1, n2),
+    lengths (S, N) element lengths (0 for padding), curvatures (S, N, 3) = q = (twist, kappa1, kappa2)
+    per element (0 for padding), n_elements (S,).
+    """
+
+    root_positions: np.ndarray
+    root_frames: np.ndarray
+    lengths: np.ndarray
+    curvatures: np.ndarray
+    n_elements: np.ndarray = field(default=None)
+
+    def __post_init__(self) -> None:
+        self.root_positions = np.asarray(self.root_positions, dtype=np.float64).reshape(-1, 3)
+        self.root_frames = np.asarray(self.root_frames, dtype=np.float64).reshape(-1, 3, 3)
+        self.lengths = np.asarray(self.lengths, dtype=np.float64)
+        if self.lengths.ndim == 1:
+            self.lengths = self.lengths[None]
+        self.curvatures = np.asarray(self.curvatures, dtype=np.float64).reshape(self.lengths.shape + (3,))
+        if self.n_elements is None:
+            self.n_elements = np.count_nonzero(self.lengths > 0, axis=1)
+        self.n_elements = np.asarray(self.n_elements, dtype=np.int64)
+
+    @property
+    def n_strands(self) -> int:
+        return self.lengths.shape[0]
+
+    @property
+    def max_elements(self) -> int:
+        return self.lengths.shape[1]
+
+    @property
+    def element_mask(self) -> np.ndarray:
+        """(S, N) True on real elements."""
+        return np.arange(self.max_elements)[None, :] < self.n_elements[:, None]
+
+    @property
+    def element_starts(self) -> np.ndarray:
+        """(S, N + 1) arc length S_j at each node."""
+        return np.concatenate([np.zeros((self.n_strands, 1)), np.cumsum(self.lengths, axis=1)], axis=1)
+
+    @property
+    def strand_lengths(self) -> np.ndarray:
+        return self.lengths.sum(axis=1)
+
+    def with_curvatures(self, curvatures: np.ndarray) -> "SuperHelix":
+        return SuperHelix(self.root_positions, self.root_frames, self.lengths, curvatures, self.n_elements)
+
+    # flat (unpadded) views: the generalised coordinates of all strands, strand after strand
+    def flat_offsets(self) -> np.ndarray:
+        """(S + 1,) offsets of each strand's elements in the flat element list."""
+        return np.concatenate([[0], np.cumsum(self.n_elements)]).astype(np.int64)
+
+    def to_flat(self, padded: np.ndarray) -> np.ndarray:
+        """(S, N, ...) -> (E, ...) keeping real elements only."""
+        return padded[self.element_mask]
+
+    def from_flat(self, flat: np.ndarray) -> np.ndarray:
+        out = np.zeros(self.lengths.shape + flat.shape[1:])
+        out[self.element_mask] = flat
+        return out
+
+    def subset(self, strand_ids) -> "SuperHelix":
+        ids = np.asarray(strand_ids, dtype=np.int64)
+        n = int(self.n_elements[ids].max()) if len(ids) else 0
+        return SuperHelix(self.root_positions[ids], self.root_frames[ids], self.lengths[ids, :n],
+                          self.curvatures[ids, :n], self.n_elements[ids])
+
+
+# --------------------------------------------------------------------------- kinematics
+@dataclass
+class Kinematics:
+    """Everything per element of one configuration, computed once and reused.
+
+    C (S, N+1, 3) and R (S, N+1, 3, 3): node positions and frames; coefficient tables c, dc, ddc
+    (5, S, N); p, P (S, N, 3) end position / first moment of each element in its start frame;
+    D, DP (S, N, 3, 3) their omega-derivatives; Theta (S, N, 3, 3) = R_j Psi_1(l_j); Q (S, N, 3, 3).
+    """
+
+    helix: SuperHelix
+    C: np.ndarray
+    R: np.ndarray
+    Q: np.ndarray
+    p: np.ndarray
+    P: np.ndarray
+    D: np.ndarray
+    DP: np.ndarray
+    Theta: np.ndarray
+    c: np.ndarray
+    dc: np.ndarray
+    ddc: np.ndarray
+    z: np.ndarray
+
+
+def kinematics(helix: SuperHelix) -> Kinematics:
+    """Node frames and positions by the recursion R_{j+1} = R_j Q_j, C_{j+1} = C_j + R_j p_j."""
+    l = helix.lengths
+    w = helix.curvatures
+    S, N = l.shape
+    z = np.einsum("snk,snk->sn", w, w)
+    c, dc, ddc = c_table(l, z)
+    W = skew(w)
+    Q = np.eye(3) + c[1][..., None, None] * W + c[2][..., None, None] * (W @ W)
+    psi1 = l[..., None, None] * np.eye(3) + c[2][..., None, None] * W + c[3][..., None, None] * (W @ W)
+    e0 = np.broadcast_to(E0, w.shape)
+    p = psi1[..., :, 0]
+    P = _psi_apply(0.5 * l * l, c[3], c[4], w, z, e0)
+    D = _psi_apply_jacobian(c[2], dc[2], c[3], dc[3], w, z, e0)
+    DP = _psi_apply_jacobian(c[3], dc[3], c[4], dc[4], w, z, e0)
+
+    C = np.empty((S, N + 1, 3))
+    R = np.empty((S, N + 1, 3, 3))
+    C[:, 0] = helix.root_positions
+    R[:, 0] = helix.root_frames
+    for j in range(N):
+        C[:, j + 1] = C[:, j] + np.einsum("sab,sb->sa", R[:, j], p[:, j])
+        R[:, j + 1] = R[:, j] @ Q[:, j]
+    Theta = R[:, :-1] @ psi1
+    return Kinematics(helix, C, R, Q, p, P, D, DP, Theta, c, dc, ddc, z)
+
+
+def locate(helix: SuperHelix, strand: np.ndarray, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Element index and local parameter t of arc length s on each strand (clamped to [0, L])."""
+    strand = np.asarray(strand, dtype=np.int64)
+    s = np.asarray(s, dtype=np.float64)
+    starts = helix.element_starts[strand]  # (P, N+1)
+    last = np.maximum(helix.n_elements[strand] - 1, 0)
+    elem = np.sum(starts[:, 1:-1] <= s[:, None], axis=1)
+    elem = np.minimum(elem, last)
+    t = s - starts[np.arange(len(s)), elem]
+    t = np.clip(t, 0.0, helix.lengths[strand, elem])
+    return elem, t
+
+
+def evaluate(helix: SuperHelix, strand, s, kin: Kinematics | None = None):
+    """Positions (P, 3) and frames (P, 3, 3) at arc lengths s on the given strands."""
+    kin = kin if kin is not None else kinematics(helix)
+    strand = np.asarray(strand, dtype=np.int64)
+    elem, t = locate(helix, strand, s)
+    w = helix.curvatures[strand, elem]
+    R0 = kin.R[strand, elem]
+    pos = kin.C[strand, elem] + np.einsum("pab,pb->pa", R0, local_position(t, w))
+    frames = R0 @ local_rotation(t, w)
+    return pos, frames
+
+
+def sample(helix: SuperHelix, per_element: int = 4, kin: Kinematics | None = None):
+    """Sample every strand at ``per_element`` equal steps per element (nodes included).
+
+    Returns points (V, 3), offsets (S + 1,), strand id (V,) and arc length (V,).
+    """
+    kin = kin if kin is not None else kinematics(helix)
+    counts = helix.n_elements * per_element + 1
+    offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+    strand = np.repeat(np.arange(helix.n_strands), counts)
+    local = np.arange(len(strand)) - offsets[strand]
+    elem = np.minimum(local // per_element, np.maximum(helix.n_elements[strand] - 1, 0))
+    frac = (local - elem * per_element) / per_element
+    s = helix.element_starts[strand, elem] + frac * helix.lengths[strand, elem]
+    pos, _ = evaluate(helix, strand, s, kin)
+    return pos, offsets, strand, s
+
+
+def point_jacobians(helix: SuperHelix, strand, s, kin: Kinematics | None = None):
+    """dC(s)/dq for points on strands: (P, N, 3, 3), block k = dC/domega_k (zero beyond the point).
+
+    Also returns the element index of each point (P,).
+    """
+    kin = kin if kin is not None else kinematics(helix)
+    strand = np.asarray(strand, dtype=np.int64)
+    elem, t = locate(helix, strand, s)
+    w = helix.curvatures[strand, elem]
+    x = kin.C[strand, elem] + np.einsum("pab,pb->pa", kin.R[strand, elem], local_position(t, w))
+    N = helix.max_elements
+    theta = kin.Theta[strand]  # (P, N, 3, 3)
+    B = kin.R[strand, :-1] @ kin.D[strand] + skew(kin.C[strand, 1:]) @ theta
+    J = B - skew(x)[:, None] @ theta
+    k = np.arange(N)[None, :]
+    J[k > elem[:, None]] = 0.0
+    own = kin.R[strand, elem] @ local_position_jacobian(t, w)
+    J[np.arange(len(strand)), elem] = own
+    return J, elem
+
+
+# --------------------------------------------------------------------------- energy and forces
+def stiffness(helix: SuperHelix, stiffness_diag) -> np.ndarray:
+    """K as (S, N, 3): K_j = l_j (GJ, EI1, EI2); zero on padding."""
+    return helix.lengths[..., None] * np.asarray(stiffness_diag, dtype=np.float64)
+
+
+def elastic_energy(helix: SuperHelix, rest_curvatures: np.ndarray, stiffness_diag) -> np.ndarray:
+    """1/2 (q - q0)^T K (q - q0) per strand, (S,)."""
+    d = helix.curvatures - rest_curvatures
+    return 0.5 * np.einsum("snk,snk->s", stiffness(helix, stiffness_diag) * d, d)
+
+
+def _downstream_moments(helix: SuperHelix, kin: Kinematics):
+    """m_{j+1} = L - S_{j+1} (S, N) and X_{j+1} = int_{s > S_{j+1}} (C - C_{j+1}) ds (S, N, 3)."""
+    l = helix.lengths
+    integral = l[..., None] * kin.C[:, :-1] + np.einsum("snab,snb->sna", kin.R[:, :-1], kin.P)
+    # first moment of everything beyond node j+1: sum over elements k > j
+    m1 = np.cumsum(integral[:, ::-1], axis=1)[:, ::-1]
+    m1_beyond = np.concatenate([m1[:, 1:], np.zeros_like(m1[:, :1])], axis=1)
+    mass_beyond = np.cumsum(l[:, ::-1], axis=1)[:, ::-1]
+    m_beyond = np.concatenate([mass_beyond[:, 1:], np.zeros_like(mass_beyond[:, :1])], axis=1)
+    X = m1_beyond - m_beyond[..., None] * kin.C[:, 1:]
+    return m_beyond, X, integral
+
+
+def gravity_potential(helix: SuperHelix, linear_density: float, gravity, kin: Kinematics | None = None):
+    """V = -rhoS g . int_0^L C(s) ds per strand (S,), exact."""
+    kin = kin if kin is not None else kinematics(helix)
+    _, _, integral = _downstream_moments(helix, kin)
+    return -linear_density * np.einsum("snk,k->s", integral, np.asarray(gravity, dtype=np.float64))
+
+
+def _integrated_jacobians(helix: SuperHelix, kin: Kinematics):
+    """G_k = int_0^L dC/domega_k ds (S, N, 3, 3), plus m and X."""
+    m, X, _ = _downstream_moments(helix, kin)
+    Rk = kin.R[:, :-1]
+    G = Rk @ kin.DP + m[..., None, None] * (Rk @ kin.D) - skew(X) @ kin.Theta
+    return G, m, X
+
+
+def gravity_force(helix: SuperHelix, linear_density: float, gravity, kin: Kinematics | None = None):
+    """F = -dV/dq = rhoS int (dC/dq)^T g ds, as (S, N, 3)."""
+    kin = kin if kin is not None else kinematics(helix)
+    G, _, _ = _integrated_jacobians(helix, kin)
+    return linear_density * np.einsum("snab,a->snb", G, np.asarray(gravity, dtype=np.float64))
+
+
+def gravity_force_jacobian(helix: SuperHelix, linear_density: float, gravity, kin: Kinematics | None = None):
+    """dF/dq per strand, (S, 3N, 3N), symmetric (F is a gradient)."""
+    kin = kin if kin is not None else kinematics(helix)
+    g = np.asarray(gravity, dtype=np.float64)
+    S, N = helix.lengths.shape
+    G, m, X = _integrated_jacobians(helix, kin)
+    gx = skew(g)
+    # off-diagonal blocks, j < k: -rhoS Theta_j^T [g]x G_k
+    left = np.einsum("sjba,bc->sjac", kin.Theta, gx)  # Theta_j^T [g]x
+    blocks = -linear_density * np.einsum("sjac,skcd->sjkad", left, G)
+    jj, kk = np.meshgrid(np.arange(N), np.arange(N), indexing="ij")
+    lower = jj > kk
+    blocks[:, lower] = np.swapaxes(blocks[:, kk[lower], jj[lower]], -1, -2)
+    # diagonal blocks
+    w = helix.curvatures
+    z = kin.z
+    c, dc, ddc = kin.c, kin.dc, kin.ddc
+    u = np.einsum("snba,b->sna", kin.R[:, :-1], g)  # R_j^T g
+    Y = np.einsum("snba,snb->sna", kin.R[:, 1:], X)  # R_{j+1}^T X_{j+1}
+    e0 = np.broadcast_to(E0, w.shape)
+    diag = _psi_form_hessian(c[3], dc[3], ddc[3], c[4], dc[4], ddc[4], w, z, u, e0)
+    diag += m[..., None, None] * _psi_form_hessian(c[2], dc[2], ddc[2], c[3], dc[3], ddc[3], w, z, u, e0)
+    diag += _psi_form_hessian(c[1], dc[1], ddc[1], c[2], dc[2], ddc[2], w, z, u, Y)
+    idx = np.arange(N)
+    blocks[:, idx, idx] = linear_density * diag
+    return blocks.transpose(0, 1, 3, 2, 4).reshape(S, 3 * N, 3 * N)
+
+
+def mass_matrix(helix: SuperHelix, linear_density: float, kin: Kinematics | None = None, order: int = 4):
+    """M = rhoS int (dC/dq)^T (dC/dq) ds per strand, (S, 3N, 3N), Gauss-Legendre of ``order`` per element."""
+    kin = kin if kin is not None else kinematics(helix)
+    S, N = helix.lengths.shape
+    xg, wg = np.polynomial.legendre.leggauss(order)
+    xg = 0.5 * (xg + 1.0)
+    wg = 0.5 * wg
+    starts = helix.element_starts
+    M = np.zeros((S, 3 * N, 3 * N))
+    strand = np.arange(S)
+    for j in range(N):
+        for xq, wq in zip(xg, wg):
+            s = starts[:, j] + xq * helix.lengths[:, j]
+            J, _ = point_jacobians(helix, strand, s, kin)
+            J = J.transpose(0, 2, 1, 3).reshape(S, 3, 3 * N)
+            weight = linear_density * wq * helix.lengths[:, j]
+            M += weight[:, None, None] * np.einsum("sai,saj->sij", J, J)
+    return M
