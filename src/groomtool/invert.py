@@ -1,0 +1,384 @@
+"""Inverse statics: rest curvatures q0 that make the groomed shape an equilibrium (MATH.md section 6).
+
+Isolated strands:   K (q - q0) = F(q)                 =>  q0 = q - K^-1 F(q)
+With contacts:      K (q - q0) = F(q) + H^T r, r_i in K_mu (Coulomb cones), under-determined; take
+
+    min_r 1/2 || q - K^-1 (H^T r + F) - q0_guess ||^2 + gamma_abs ||r||^2,   r_i in K_mu
+    q0 = q - K^-1 (F + H^T r)
+
+a second-order-cone QP  min 1/2 r^T W r + b^T r  with W = H K^-2 H^T + 2 gamma_abs I,
+b = -H K^-1 d, d = q - K^-1 F - q0_guess.  ``gamma`` is given relative to the mean diagonal of
+H K^-2 H^T (gamma_abs = gamma * mean diag), so it is dimensionless.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .groom import Groom
+from .material import Material
+from .rods import superhelix as sh
+
+GUESSES = ("current", "tip")
+CONTACT_MODES = ("none", "head", "all")
+
+
+class SolverFailure(RuntimeError):
+    """The contact solver did not reach its tolerance: carries the status and the residual."""
+
+    def __init__(self, message: str, status: str, residual: float):
+        super().__init__(message)
+        self.status = status
+        self.residual = residual
+
+
+@dataclass
+class InversionParams:
+    """Everything that decides the inversion besides the groom and the head."""
+
+    material: Material = field(default_factory=Material)
+    tolerance: float = 5e-4
+    relative_tolerance: float | None = None
+    contacts: str = "none"  # none | head | all
+    contact_radius: float | None = None
+    guess: str = "current"  # current | tip
+    gamma: float = 1e-6
+    solver: str = "auto"  # clarabel | gs | auto
+    solver_tolerance: float = 1e-10
+    max_iterations: int = 5000
+    snap_roots: bool = False
+    samples_per_element: int = 8
+
+    def __post_init__(self):
+        if self.contacts not in CONTACT_MODES:
+            raise ValueError(f"contacts must be one of {CONTACT_MODES}, got {self.contacts!r}")
+        if self.guess not in GUESSES:
+            raise ValueError(f"guess must be one of {GUESSES}, got {self.guess!r}")
+        if not (self.gamma >= 0):
+            raise ValueError(f"gamma must be >= 0, got {self.gamma}")
+        if not (self.tolerance > 0):
+            raise ValueError(f"tolerance must be > 0, got {self.tolerance}")
+
+
+def isolated_rest_curvatures(helix: sh.SuperHelix, material: Material, gravity, kin=None) -> np.ndarray:
+    """q0 = q - K^-1 F(q), (S, N, 3); padding stays 0."""
+    F = sh.gravity_force(helix, material.linear_density, gravity, kin)
+    K = sh.stiffness(helix, material.stiffness_diag)
+    q0 = helix.curvatures - np.divide(F, K, out=np.zeros_like(F), where=K > 0)
+    return q0
+
+
+def rest_curvature_guess(helix: sh.SuperHelix, guess: str) -> np.ndarray:
+    """q0_guess: ``current`` = q (keep the least elastic energy: contacts carry what they can);
+    ``tip`` = the curvature of each strand's last element everywhere (the tip carries no load,
+    so its shape is its natural shape; the lecture's q0 = q(L), for uniformly curled hair)."""
+    if guess == "current":
+        return helix.curvatures.copy()
+    last = np.maximum(helix.n_elements - 1, 0)
+    tip = helix.curvatures[np.arange(helix.n_strands), last]
+    return np.where(helix.element_mask[..., None], tip[:, None, :], 0.0)
+
+
+def equilibrium_residuals(helix: sh.SuperHelix, rest_curvatures, material: Material, gravity,
+                          contacts=None, forces=None) -> np.ndarray:
+    """||K (q - q0) - F - H^T r|| / ||F|| per strand, recomputed from scratch (fresh kinematics,
+    H^T r point by point), independent of how q0 was obtained."""
+    kin = sh.kinematics(helix)
+    F = sh.gravity_force(helix, material.linear_density, gravity, kin)
+    K = sh.stiffness(helix, material.stiffness_diag)
+    res = K * (helix.curvatures - rest_curvatures) - F
+    if contacts is not None and forces is not None and len(forces):
+        from .contact.jacobian import generalized_contact_force
+
+        res -= generalized_contact_force(helix, contacts, forces, kin)
+    num = np.linalg.norm(res.reshape(helix.n_strands, -1), axis=1)
+    den = np.linalg.norm(F.reshape(helix.n_strands, -1), axis=1)
+    return num / np.maximum(den, np.finfo(float).tiny)
+
+
+@dataclass
+class InverseProblem:
+    """The inverse SOCQP in solver units: W~ = H (K^-2 / w_scale) H^T + 2 gamma I, b~ = b / (w_scale f_scale),
+    r = f_scale r~.  ``H`` and ``inv_stiffness`` (flat K^-1) are kept to map r back to q0."""
+
+    H: object
+    inv_stiffness: np.ndarray
+    d: np.ndarray
+    gamma: float
+    w_scale: float
+    f_scale: float
+    b: np.ndarray
+    mu: np.ndarray
+
+    def objective(self, r: np.ndarray) -> float:
+        """1/2 || K^-1 H^T r - d ||^2 + gamma_abs ||r||^2 in physical units (r in newtons)."""
+        y = self.inv_stiffness * (self.H.T @ r) - self.d
+        return 0.5 * float(y @ y) + self.gamma * self.w_scale * float(r @ r)
+
+
+def build_inverse_problem(helix, kin, H, material: Material, gravity, guess: str, gamma: float,
+                          mu: np.ndarray) -> InverseProblem:
+    K = sh.stiffness(helix, material.stiffness_diag)
+    F = sh.gravity_force(helix, material.linear_density, gravity, kin)
+    q0_guess = rest_curvature_guess(helix, guess)
+    inv_k = helix.to_flat(np.divide(1.0, K, out=np.zeros_like(K), where=K > 0)).ravel()
+    q = helix.to_flat(helix.curvatures).ravel()
+    d = q - inv_k * helix.to_flat(F).ravel() - helix.to_flat(q0_guess).ravel()
+    HK = H.multiply(inv_k[None, :]).tocsr()  # H K^-1
+    diag = np.asarray(HK.multiply(HK).sum(axis=1)).ravel()
+    w_scale = float(diag.mean()) if len(diag) and diag.mean() > 0 else 1.0
+    b = -(HK @ d)
+    f_scale = material.linear_density * np.linalg.norm(gravity) * float(np.mean(helix.strand_lengths))
+    b_scaled = b / (w_scale * f_scale)
+    return InverseProblem(H=H, inv_stiffness=inv_k, d=d, gamma=gamma, w_scale=w_scale, f_scale=f_scale,
+                          b=b_scaled, mu=np.asarray(mu, dtype=np.float64))
+
+
+def rest_curvatures_with_contacts(helix, material, gravity, H, forces_flat, kin=None) -> np.ndarray:
+    """q0 = q - K^-1 (F + H^T r), (S, N, 3)."""
+    F = sh.gravity_force(helix, material.linear_density, gravity, kin)
+    K = sh.stiffness(helix, material.stiffness_diag)
+    HtR = helix.from_flat((H.T @ forces_flat).reshape(-1, 3))
+    return helix.curvatures - np.divide(F + HtR, K, out=np.zeros_like(F), where=K > 0)
+
+
+def cone_violation(forces: np.ndarray, mu: np.ndarray) -> float:
+    """max over contacts of max(0, ||r_T|| - mu r_N) (newtons), 0 for no contact."""
+    if len(forces) == 0:
+        return 0.0
+    f = forces.reshape(-1, 3)
+    return float(np.max(np.maximum(0.0, np.linalg.norm(f[:, 1:], axis=1) - mu * f[:, 0])))
+
+
+class Timer:
+    """Collects wall-clock seconds per named stage."""
+
+    def __init__(self):
+        self.stages: dict[str, float] = {}
+        self._t0 = time.perf_counter()
+
+    def stage(self, name: str):
+        timer = self
+
+        class _Stage:
+            def __enter__(self):
+                self.t = time.perf_counter()
+
+            def __exit__(self, *exc):
+                timer.stages[name] = timer.stages.get(name, 0.0) + time.perf_counter() - self.t
+
+        return _Stage()
+
+    def total(self) -> float:
+        return time.perf_counter() - self._t0
+
+
+def gravity_vector(groom: Groom, material: Material) -> np.ndarray:
+    return groom.gravity(material.gravity)
+
+
+def summarize(values: np.ndarray) -> dict:
+    values = np.asarray(values, dtype=np.float64)
+    if values.size == 0:
+        return {"max": 0.0, "mean": 0.0}
+    return {"max": float(values.max()), "mean": float(values.mean())}
+
+
+# --------------------------------------------------------------------------- the whole job
+@dataclass
+class InversionResult:
+    """What ``groom invert`` computes: the fitted Super-Helices, their rest curvatures, the contacts
+    and forces, and the report (also written as report.json)."""
+
+    groom: Groom
+    head: object
+    params: InversionParams
+    helix: sh.SuperHelix
+    rest_curvatures: np.ndarray
+    fit_max_error: np.ndarray
+    fit_mean_error: np.ndarray
+    gravity: np.ndarray
+    contacts: object = None
+    forces: np.ndarray = None  # (m, 3) in contact frames (N, T1, T2), newtons
+    stiffness_ratio: np.ndarray = None
+    report: dict = field(default_factory=dict)
+    extra_arrays: dict = field(default_factory=dict)  # more arrays for rest.npz (discrete rod data)
+
+    @property
+    def material(self) -> Material:
+        return self.params.material
+
+    def rest_helix(self) -> sh.SuperHelix:
+        """The strands with their rest curvatures: the shape they take with no gravity, no contact."""
+        return self.helix.with_curvatures(self.rest_curvatures)
+
+    def rest_shape(self, per_element: int = 8):
+        """(points, offsets) of the rest shape sampled ``per_element`` times per element."""
+        pts, offsets, _, _ = sh.sample(self.rest_helix(), per_element)
+        return pts, offsets
+
+    def fitted_shape(self, per_element: int = 8):
+        pts, offsets, _, _ = sh.sample(self.helix, per_element)
+        return pts, offsets
+
+    def save(self, outdir, formats=("npz", "obj", "json")):
+        from .io.results import write_result
+
+        return write_result(self, outdir, formats=formats)
+
+
+def _progress(total, desc, quiet):
+    from tqdm.auto import tqdm
+
+    return tqdm(total=total, desc=desc, disable=quiet, unit="strand", leave=False)
+
+
+def invert_groom(groom: Groom, head=None, params: InversionParams | None = None,
+                 quiet: bool = True) -> InversionResult:
+    """Fit, detect contacts, solve the inverse problem and check the equilibrium.
+
+    Raises SolverFailure when the contact solver does not converge (nothing is written then).
+    """
+    from .fit import fit_groom
+
+    params = params or InversionParams()
+    material = params.material
+    gravity = gravity_vector(groom, material)
+    timer = Timer()
+    report: dict = {"input": groom.source, "up": groom.up, "material": material.as_dict(),
+                    "gravity_m_s2": gravity.tolist()}
+
+    if params.snap_roots and head is not None:
+        from .contact.head import snap_roots
+
+        with timer.stage("snap_roots"):
+            groom, gaps = _snap_groom_roots(groom, head, snap_roots)
+        report["roots"] = {"mode": "snapped", **_gap_summary(gaps)}
+    elif head is not None:
+        from .contact.head import root_gaps
+
+        gaps = root_gaps(groom.points[groom.offsets[:-1]], head)
+        report["roots"] = {"mode": "gap_reported", **_gap_summary(gaps)}
+
+    with timer.stage("fit"):
+        fit = fit_groom(groom, tolerance=params.tolerance, relative_tolerance=params.relative_tolerance,
+                        progress=not quiet)
+    helix = fit.helix
+    kin = sh.kinematics(helix)
+    report["strands"] = int(helix.n_strands)
+    report["elements"] = int(helix.n_elements.sum())
+    report["fit"] = {"max_error_m": float(np.max(fit.max_error)) if len(fit.max_error) else 0.0,
+                     "mean_error_m": float(np.mean(fit.mean_error)) if len(fit.mean_error) else 0.0,
+                     "tolerance_m": params.tolerance,
+                     "relative_tolerance": params.relative_tolerance,
+                     "strands_over_tolerance": int(np.count_nonzero(~np.asarray(fit.converged)))}
+
+    contacts = None
+    forces = np.zeros((0, 3))
+    if params.contacts != "none":
+        from .contact import detect_contacts
+        from .contact.jacobian import contact_jacobian
+
+        with timer.stage("contacts"):
+            pts, offsets, _, arc = sh.sample(helix, params.samples_per_element, kin)
+            contacts = detect_contacts(pts, offsets, arc, radius=params.contact_radius,
+                                       head=head, strand_strand=params.contacts == "all")
+        with timer.stage("jacobian"):
+            H = contact_jacobian(helix, contacts, kin)
+        report["contacts"] = {"total": int(len(contacts.strand_a)),
+                              "strand_strand": int(np.count_nonzero(np.asarray(contacts.strand_b) >= 0)),
+                              "strand_head": int(np.count_nonzero(np.asarray(contacts.strand_b) < 0)),
+                              "radius_m": float(contacts.radius) if hasattr(contacts, "radius") else params.contact_radius}
+        mu = np.full(len(contacts.strand_a), material.friction)
+        with timer.stage("solve"):
+            problem = build_inverse_problem(helix, kin, H, material, gravity, params.guess, params.gamma, mu)
+            solve = _solve(problem, helix, params)
+        forces = solve["forces"]
+        report["solve"] = {k: v for k, v in solve.items() if k != "forces"}
+        report["solve"]["objective"] = problem.objective(forces.ravel())
+        report["solve"]["cone_violation"] = cone_violation(forces, mu)
+        report["solve"]["gamma"] = params.gamma
+        report["solve"]["guess"] = params.guess
+        with timer.stage("rest_curvatures"):
+            rest = rest_curvatures_with_contacts(helix, material, gravity, H, forces.ravel(), kin)
+        if not solve["converged"]:
+            raise SolverFailure(
+                f"contact solver {solve['solver']} did not converge: status {solve['status']}, "
+                f"residual {solve['residual']:.3e} after {solve['iterations']} iterations",
+                solve["status"], solve["residual"])
+    else:
+        with timer.stage("rest_curvatures"):
+            rest = isolated_rest_curvatures(helix, material, gravity, kin)
+
+    with timer.stage("equilibrium_check"):
+        residual = equilibrium_residuals(helix, rest, material, gravity, contacts, forces)
+    report["equilibrium"] = {"max_relative_residual": float(residual.max()) if len(residual) else 0.0,
+                             "mean_relative_residual": float(residual.mean()) if len(residual) else 0.0}
+
+    with timer.stage("stability"):
+        ratio = stiffness_ratios_progress(helix, material, gravity, quiet)
+    unstable = np.flatnonzero(ratio >= 1.0)
+    report["stability"] = {
+        "unstable_strands": int(len(unstable)),
+        "criterion": "isolated strand: lambda_max(K^-1/2 dF/dq K^-1/2) < 1",
+        "max_stiffness_ratio": float(ratio.max()) if len(ratio) else 0.0,
+        "required_young_modulus_factor": float(max(1.0, ratio.max())) if len(ratio) else 1.0,
+        "unstable_strand_ids": unstable[:100].tolist(),
+        "note": ("isolated-strand criterion; strands longer than the Greenhill length "
+                 f"{material.greenhill_length():.3f} m rising from the scalp are only held by contact"),
+    }
+    report["timings_s"] = dict(timer.stages)
+    report["timings_s"]["total"] = timer.total()
+    report["parameters"] = {
+        "tolerance_m": params.tolerance, "relative_tolerance": params.relative_tolerance,
+        "contacts": params.contacts, "contact_radius_m": params.contact_radius, "guess": params.guess,
+        "gamma": params.gamma, "solver": params.solver, "solver_tolerance": params.solver_tolerance,
+        "snap_roots": params.snap_roots,
+    }
+    return InversionResult(groom=groom, head=head, params=params, helix=helix, rest_curvatures=rest,
+                           fit_max_error=np.asarray(fit.max_error), fit_mean_error=np.asarray(fit.mean_error),
+                           gravity=gravity, contacts=contacts, forces=forces, stiffness_ratio=ratio,
+                           report=report)
+
+
+def stiffness_ratios_progress(helix, material, gravity, quiet):
+    from .stability import stiffness_ratios
+
+    with _progress(helix.n_strands, "stability", quiet) as bar:
+        return stiffness_ratios(helix, material.stiffness_diag, material.linear_density, gravity, progress=bar)
+
+
+def _gap_summary(gaps: np.ndarray) -> dict:
+    gaps = np.asarray(gaps, dtype=np.float64)
+    return {"median_gap_m": float(np.median(np.abs(gaps))) if len(gaps) else 0.0,
+            "max_gap_m": float(np.max(np.abs(gaps))) if len(gaps) else 0.0,
+            "inside_head": int(np.count_nonzero(gaps < 0))}
+
+
+def _snap_groom_roots(groom: Groom, head, snap_roots):
+    """Translate every strand so that its root lies on the head surface; returns the gaps before."""
+    roots = groom.points[groom.offsets[:-1]]
+    snapped, gaps = snap_roots(roots, head)
+    shift = np.repeat(snapped - roots, groom.counts, axis=0)
+    moved = Groom(groom.points + shift, groom.offsets, up=groom.up, source=groom.source,
+                  metadata=dict(groom.metadata))
+    return moved, gaps
+
+
+def _solve(problem: InverseProblem, helix: sh.SuperHelix, params: InversionParams) -> dict:
+    """Solve the scaled SOCQP with the chosen solver; forces returned in newtons (m, 3)."""
+    from .solvers import ContactProblem, solve_contact_problem
+
+    inv_k = problem.inv_stiffness
+    offsets = 3 * helix.flat_offsets()
+    blocks = [np.diag(inv_k[a:b] ** 2 / problem.w_scale) for a, b in zip(offsets[:-1], offsets[1:])]
+    cp = ContactProblem(H=problem.H, D_blocks=blocks, dof_offsets=offsets, gamma=problem.gamma,
+                        b=problem.b, mu=problem.mu)
+    res = solve_contact_problem(cp, law="soc", method=params.solver, tol=params.solver_tolerance,
+                                max_iter=params.max_iterations)
+    forces = np.asarray(res.r).reshape(-1, 3) * problem.f_scale
+    return {"forces": forces, "solver": res.method, "status": res.status, "converged": bool(res.converged),
+            "iterations": int(res.iterations), "residual": float(res.residual), "time_s": float(res.time_s)}
