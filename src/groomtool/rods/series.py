@@ -24,6 +24,7 @@ from __future__ import annotations
 from math import factorial
 
 import numpy as np
+from numba import njit
 
 SERIES_X = 4.0  # theta < 2: the series terms stay below 1 and 18 terms reach round-off
 _N_TERMS = 18
@@ -49,55 +50,105 @@ def _horner(coeffs: np.ndarray, x: np.ndarray) -> np.ndarray:
     return out
 
 
-def f_table(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """f_n(x), f_n'(x), f_n''(x) for n = 0..4, each returned with a leading axis of size 5.
-
-    x >= 0 of any shape.  Accurate to a few ulps for all x (series below SERIES_X).
-    """
+def _f_reference(x: np.ndarray):
+    """f_n, f_n', f_n'' (n = 0..4) by plain numpy: the readable reference the compiled kernel is tested against."""
     x = np.asarray(x, dtype=np.float64)
     f = np.empty((N_MAX + 1,) + x.shape)
     d1 = np.empty_like(f)
     d2 = np.empty_like(f)
     small = x < SERIES_X
-    if np.any(small):
-        xs = x[small]
-        for n in range(N_MAX + 1):
-            f[n][small] = _horner(_COEFFS[(n, 0)], xs)
-            d1[n][small] = _horner(_COEFFS[(n, 1)], xs)
-            d2[n][small] = _horner(_COEFFS[(n, 2)], xs)
-    large = ~small
-    if np.any(large):
-        xl = x[large]
-        th = np.sqrt(xl)
-        fl = [np.cos(th), np.sin(th) / th]
-        for n in range(2, N_MAX + 1):
-            fl.append((1.0 / factorial(n - 2) - fl[n - 2]) / xl)
-        d1l = [-0.5 * fl[1]]
-        for n in range(1, N_MAX + 1):
-            d1l.append((fl[n - 1] - n * fl[n]) / (2.0 * xl))
-        # f_0'' from f_0' = -f_1 / 2
-        d2l = [-0.5 * d1l[1]]
-        for n in range(1, N_MAX + 1):
-            d2l.append((d1l[n - 1] - (n + 2) * d1l[n]) / (2.0 * xl))
-        for n in range(N_MAX + 1):
-            f[n][large] = fl[n]
-            d1[n][large] = d1l[n]
-            d2[n][large] = d2l[n]
+    xs = x[small]
+    for n in range(N_MAX + 1):
+        f[n][small] = _horner(_COEFFS[(n, 0)], xs)
+        d1[n][small] = _horner(_COEFFS[(n, 1)], xs)
+        d2[n][small] = _horner(_COEFFS[(n, 2)], xs)
+    xl = x[~small]
+    th = np.sqrt(xl)
+    fl = [np.cos(th), np.sin(th) / th]
+    for n in range(2, N_MAX + 1):
+        fl.append((1.0 / factorial(n - 2) - fl[n - 2]) / xl)
+    d1l = [-0.5 * fl[1]]
+    for n in range(1, N_MAX + 1):
+        d1l.append((fl[n - 1] - n * fl[n]) / (2.0 * xl))
+    d2l = [-0.5 * d1l[1]]  # f_0' = -f_1 / 2
+    for n in range(1, N_MAX + 1):
+        d2l.append((d1l[n - 1] - (n + 2) * d1l[n]) / (2.0 * xl))
+    for n in range(N_MAX + 1):
+        f[n][~small], d1[n][~small], d2[n][~small] = fl[n], d1l[n], d2l[n]
     return f, d1, d2
 
 
-def c_table(t: np.ndarray, z: np.ndarray):
-    """c_n(t, z), dc_n/dz, d^2c_n/dz^2 for n = 0..4, leading axis of size 5.
+_COEFF_ARRAY = np.stack([np.stack([_COEFFS[(n, d)] for n in range(N_MAX + 1)]) for d in range(3)])  # (3, 5, T)
+_INV_FACT = np.array([1.0 / factorial(n) for n in range(N_MAX + 1)])
+
+
+@njit(cache=True)
+def _f_point(x, order, out):
+    """out[d, n] = d-th derivative of f_n at x, d <= order."""
+    if x < SERIES_X:
+        T = _COEFF_ARRAY.shape[2]
+        for d in range(order + 1):
+            for n in range(N_MAX + 1):
+                acc = _COEFF_ARRAY[d, n, T - 1]
+                for k in range(T - 2, -1, -1):
+                    acc = acc * x + _COEFF_ARRAY[d, n, k]
+                out[d, n] = acc
+        return
+    th = np.sqrt(x)
+    out[0, 0] = np.cos(th)
+    out[0, 1] = np.sin(th) / th
+    for n in range(2, N_MAX + 1):
+        out[0, n] = (_INV_FACT[n - 2] - out[0, n - 2]) / x
+    if order >= 1:
+        out[1, 0] = -0.5 * out[0, 1]
+        for n in range(1, N_MAX + 1):
+            out[1, n] = (out[0, n - 1] - n * out[0, n]) / (2.0 * x)
+    if order >= 2:
+        out[2, 0] = -0.5 * out[1, 1]
+        for n in range(1, N_MAX + 1):
+            out[2, n] = (out[1, n - 1] - (n + 2) * out[1, n]) / (2.0 * x)
+
+
+@njit(cache=True)
+def _c_kernel(t, z, order, out):
+    """out[d, n, i] = d^d c_n / dz^d (t_i, z_i) with c_n = t^n f_n(z t^2)."""
+    buf = np.empty((3, N_MAX + 1))
+    for i in range(t.shape[0]):
+        ti = t[i]
+        t2 = ti * ti
+        _f_point(z[i] * t2, order, buf)
+        tn = 1.0
+        for n in range(N_MAX + 1):
+            scale = tn
+            for d in range(order + 1):
+                out[d, n, i] = scale * buf[d, n]
+                scale *= t2
+            tn *= ti
+
+
+def f_table(x: np.ndarray):
+    """f_n(x), f_n'(x), f_n''(x) for n = 0..4, each with a leading axis of size 5 (x >= 0, any shape).
+
+    Accurate to a few ulps for all x (series below SERIES_X, closed forms and recurrences above).
+    """
+    x = np.asarray(x, dtype=np.float64)
+    flat = np.ascontiguousarray(x.ravel())
+    out = np.empty((3, N_MAX + 1, flat.size))
+    _c_kernel(np.ones_like(flat), flat, 2, out)
+    out = out.reshape((3, N_MAX + 1) + x.shape)
+    return out[0], out[1], out[2]
+
+
+def c_table(t: np.ndarray, z: np.ndarray, order: int = 2):
+    """c_n(t, z) and its first ``order`` z-derivatives for n = 0..4, each with a leading axis of size 5.
 
     c_n(t, z) = t^n f_n(z t^2): the coefficients of exp(t [w]x) and of its integrals in t.
+    Returns (c, dc, ddc) with None for derivatives beyond ``order``.
     """
-    t = np.asarray(t, dtype=np.float64)
-    z = np.asarray(z, dtype=np.float64)
-    t2 = t * t
-    f, d1, d2 = f_table(z * t2)
-    n = np.arange(N_MAX + 1).reshape((-1,) + (1,) * t.ndim)
-    tn = t[None] ** n
-    c = tn * f
-    dc = tn * t2 * d1
-    ddc = tn * t2 * t2 * d2
-    return c, dc, ddc
+    t, z = np.broadcast_arrays(np.asarray(t, dtype=np.float64), np.asarray(z, dtype=np.float64))
+    shape = t.shape
+    out = np.empty((order + 1, N_MAX + 1, t.size))
+    _c_kernel(np.ascontiguousarray(t.ravel()), np.ascontiguousarray(z.ravel()), order, out)
+    out = out.reshape((order + 1, N_MAX + 1) + shape)
+    tables = [out[d] for d in range(order + 1)]
+    return tuple(tables + [None] * (2 - order))

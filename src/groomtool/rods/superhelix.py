@@ -29,8 +29,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from numba import njit
 
-from .series import c_table
+from .series import _f_point, c_table
 
 E0 = np.array([1.0, 0.0, 0.0])
 
@@ -101,7 +102,7 @@ def _psi_form_hessian(beta, dbeta, ddbeta, gamma, dgamma, ddgamma, omega, z, u, 
 def local_rotation(t: np.ndarray, omega: np.ndarray) -> np.ndarray:
     """exp(t [omega]x) by Rodrigues' formula in the c_n form; t (...), omega (..., 3)."""
     z = np.einsum("...i,...i->...", omega, omega)
-    c, _, _ = c_table(t, z)
+    c, _, _ = c_table(t, z, order=0)
     W = skew(omega)
     return np.eye(3) + c[1][..., None, None] * W + c[2][..., None, None] * (W @ W)
 
@@ -109,7 +110,7 @@ def local_rotation(t: np.ndarray, omega: np.ndarray) -> np.ndarray:
 def local_position(t: np.ndarray, omega: np.ndarray) -> np.ndarray:
     """p(t) = int_0^t exp(tau [omega]x) e0 dtau: the centreline in the element's start frame."""
     z = np.einsum("...i,...i->...", omega, omega)
-    c, _, _ = c_table(t, z)
+    c, _, _ = c_table(t, z, order=0)
     e0 = np.broadcast_to(E0, omega.shape)
     return _psi_apply(t, c[2], c[3], omega, z, e0)
 
@@ -117,7 +118,7 @@ def local_position(t: np.ndarray, omega: np.ndarray) -> np.ndarray:
 def local_position_jacobian(t: np.ndarray, omega: np.ndarray) -> np.ndarray:
     """D(t) = dp(t)/domega, (..., 3, 3)."""
     z = np.einsum("...i,...i->...", omega, omega)
-    c, dc, _ = c_table(t, z)
+    c, dc, _ = c_table(t, z, order=1)
     e0 = np.broadcast_to(E0, omega.shape)
     return _psi_apply_jacobian(c[2], dc[2], c[3], dc[3], omega, z, e0)
 
@@ -200,9 +201,9 @@ class SuperHelix:
 class Kinematics:
     """Everything per element of one configuration, computed once and reused.
 
-    C (S, N+1, 3) and R (S, N+1, 3, 3): node positions and frames; coefficient tables c, dc, ddc
-    (5, S, N); p, P (S, N, 3) end position / first moment of each element in its start frame;
-    D, DP (S, N, 3, 3) their omega-derivatives; Theta (S, N, 3, 3) = R_j Psi_1(l_j); Q (S, N, 3, 3).
+    C (S, N+1, 3) and R (S, N+1, 3, 3): node positions and frames; p, P (S, N, 3) end position and
+    first moment of each element in its start frame; D, DP (S, N, 3, 3) their omega-derivatives; Theta (S, N, 3, 3) = R_j Psi_1(l_j); Q (S, N, 3, 3);
+    c, dc (5, S, N) the coefficient table and its z-derivative.
     """
 
     helix: SuperHelix
@@ -216,7 +217,6 @@ class Kinematics:
     Theta: np.ndarray
     c: np.ndarray
     dc: np.ndarray
-    ddc: np.ndarray
     z: np.ndarray
 
 
@@ -226,7 +226,7 @@ def kinematics(helix: SuperHelix) -> Kinematics:
     w = helix.curvatures
     S, N = l.shape
     z = np.einsum("snk,snk->sn", w, w)
-    c, dc, ddc = c_table(l, z)
+    c, dc, _ = c_table(l, z, order=1)
     W = skew(w)
     Q = np.eye(3) + c[1][..., None, None] * W + c[2][..., None, None] * (W @ W)
     psi1 = l[..., None, None] * np.eye(3) + c[2][..., None, None] * W + c[3][..., None, None] * (W @ W)
@@ -238,38 +238,108 @@ def kinematics(helix: SuperHelix) -> Kinematics:
 
     C = np.empty((S, N + 1, 3))
     R = np.empty((S, N + 1, 3, 3))
-    C[:, 0] = helix.root_positions
-    R[:, 0] = helix.root_frames
-    for j in range(N):
-        C[:, j + 1] = C[:, j] + np.einsum("sab,sb->sa", R[:, j], p[:, j])
-        R[:, j + 1] = R[:, j] @ Q[:, j]
+    _chain(np.ascontiguousarray(helix.root_positions), np.ascontiguousarray(helix.root_frames),
+           np.ascontiguousarray(Q), np.ascontiguousarray(p), C, R)
     Theta = R[:, :-1] @ psi1
-    return Kinematics(helix, C, R, Q, p, P, D, DP, Theta, c, dc, ddc, z)
+    return Kinematics(helix, C, R, Q, p, P, D, DP, Theta, c, dc, z)
 
 
-def locate(helix: SuperHelix, strand: np.ndarray, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+@njit(cache=True)
+def _chain(C0, R0, Q, p, C, R):
+    """C_{j+1} = C_j + R_j p_j, R_{j+1} = R_j Q_j for every strand."""
+    S, N = Q.shape[0], Q.shape[1]
+    for s in range(S):
+        for a in range(3):
+            C[s, 0, a] = C0[s, a]
+            for b in range(3):
+                R[s, 0, a, b] = R0[s, a, b]
+        for j in range(N):
+            for a in range(3):
+                acc = C[s, j, a]
+                for b in range(3):
+                    acc += R[s, j, a, b] * p[s, j, b]
+                C[s, j + 1, a] = acc
+                for b in range(3):
+                    acc = 0.0
+                    for k in range(3):
+                        acc += R[s, j, a, k] * Q[s, j, k, b]
+                    R[s, j + 1, a, b] = acc
+
+
+def locate(helix: SuperHelix, strand, s) -> tuple[np.ndarray, np.ndarray]:
     """Element index and local parameter t of arc length s on each strand (clamped to [0, L])."""
-    strand = np.asarray(strand, dtype=np.int64)
-    s = np.asarray(s, dtype=np.float64)
-    starts = helix.element_starts[strand]  # (P, N+1)
-    last = np.maximum(helix.n_elements[strand] - 1, 0)
-    elem = np.sum(starts[:, 1:-1] <= s[:, None], axis=1)
-    elem = np.minimum(elem, last)
-    t = s - starts[np.arange(len(s)), elem]
-    t = np.clip(t, 0.0, helix.lengths[strand, elem])
+    strand = np.ascontiguousarray(strand, dtype=np.int64)
+    s = np.ascontiguousarray(s, dtype=np.float64)
+    elem = np.empty(len(s), dtype=np.int64)
+    t = np.empty(len(s))
+    _locate_kernel(np.ascontiguousarray(helix.element_starts), helix.n_elements, strand, s, elem, t)
     return elem, t
+
+
+@njit(cache=True)
+def _locate_kernel(starts, n_elements, strand, s, elem, t):
+    for i in range(s.shape[0]):
+        k = strand[i]
+        n = max(n_elements[k], 1)
+        lo, hi = 0, n - 1  # the last element whose start is <= s
+        while lo < hi:
+            mid = (lo + hi + 1) // 2
+            if starts[k, mid] <= s[i]:
+                lo = mid
+            else:
+                hi = mid - 1
+        elem[i] = lo
+        t[i] = min(max(s[i] - starts[k, lo], 0.0), starts[k, lo + 1] - starts[k, lo])
 
 
 def evaluate(helix: SuperHelix, strand, s, kin: Kinematics | None = None):
     """Positions (P, 3) and frames (P, 3, 3) at arc lengths s on the given strands."""
     kin = kin if kin is not None else kinematics(helix)
-    strand = np.asarray(strand, dtype=np.int64)
+    strand = np.ascontiguousarray(strand, dtype=np.int64)
     elem, t = locate(helix, strand, s)
-    w = helix.curvatures[strand, elem]
-    R0 = kin.R[strand, elem]
-    pos = kin.C[strand, elem] + np.einsum("pab,pb->pa", R0, local_position(t, w))
-    frames = R0 @ local_rotation(t, w)
+    pos = np.empty((len(t), 3))
+    frames = np.empty((len(t), 3, 3))
+    _evaluate_kernel(kin.C, kin.R, np.ascontiguousarray(helix.curvatures), strand, elem, t, pos, frames)
     return pos, frames
+
+
+@njit(cache=True)
+def _evaluate_kernel(C, R, w, strand, elem, t, pos, frames):
+    """C(s) = C_e + R_e (t e0 + c2 w x e0 + c3 w x (w x e0)), R(s) = R_e (I + c1 W + c2 W^2)."""
+    buf = np.empty((3, 5))
+    Q = np.empty((3, 3))
+    p = np.empty(3)
+    for i in range(t.shape[0]):
+        k, e, ti = strand[i], elem[i], t[i]
+        w0, w1, w2 = w[k, e, 0], w[k, e, 1], w[k, e, 2]
+        z = w0 * w0 + w1 * w1 + w2 * w2
+        t2 = ti * ti
+        _f_point(z * t2, 0, buf)
+        c1, c2, c3 = ti * buf[0, 1], t2 * buf[0, 2], t2 * ti * buf[0, 3]
+        # W^2 = w w^T - z I
+        Q[0, 0] = 1.0 + c2 * (w0 * w0 - z)
+        Q[1, 1] = 1.0 + c2 * (w1 * w1 - z)
+        Q[2, 2] = 1.0 + c2 * (w2 * w2 - z)
+        Q[0, 1] = -c1 * w2 + c2 * w0 * w1
+        Q[1, 0] = c1 * w2 + c2 * w0 * w1
+        Q[0, 2] = c1 * w1 + c2 * w0 * w2
+        Q[2, 0] = -c1 * w1 + c2 * w0 * w2
+        Q[1, 2] = -c1 * w0 + c2 * w1 * w2
+        Q[2, 1] = c1 * w0 + c2 * w1 * w2
+        # p = t e0 + c2 (0, w2, -w1) + c3 (w0 w - z e0)
+        p[0] = ti + c3 * (w0 * w0 - z)
+        p[1] = c2 * w2 + c3 * w0 * w1
+        p[2] = -c2 * w1 + c3 * w0 * w2
+        for a in range(3):
+            acc = C[k, e, a]
+            for b in range(3):
+                acc += R[k, e, a, b] * p[b]
+            pos[i, a] = acc
+            for b in range(3):
+                acc = 0.0
+                for m in range(3):
+                    acc += R[k, e, a, m] * Q[m, b]
+                frames[i, a, b] = acc
 
 
 def sample(helix: SuperHelix, per_element: int = 4, kin: Kinematics | None = None):
@@ -373,7 +443,7 @@ def gravity_force_jacobian(helix: SuperHelix, linear_density: float, gravity, ki
     # diagonal blocks
     w = helix.curvatures
     z = kin.z
-    c, dc, ddc = kin.c, kin.dc, kin.ddc
+    c, dc, ddc = c_table(helix.lengths, z, order=2)
     u = np.einsum("snba,b->sna", kin.R[:, :-1], g)  # R_j^T g
     Y = np.einsum("snba,snb->sna", kin.R[:, 1:], X)  # R_{j+1}^T X_{j+1}
     e0 = np.broadcast_to(E0, w.shape)
