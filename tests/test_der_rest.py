@@ -1,0 +1,153 @@
+"""Discrete Elastic Rods: the energy gradient against finite differences, and the exported rest data
+making grad E = f_ext at the groomed state (residual printed)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from groomtool import Material
+from groomtool.rods import discrete as dr
+from groomtool.rods.cosserat import cosserat_rest_data
+from groomtool.rods.der import (
+    der_energy,
+    der_gradient,
+    der_residual,
+    der_rest_data,
+    der_strain_jacobian,
+)
+
+MAT = Material()
+G = np.array([0.0, -9.81, 0.0])
+USC = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "usc" / "cstrands" / "cstrands00003.data"
+
+
+def load_cstrands(path):
+    raw = path.read_bytes()
+    count = int(np.frombuffer(raw, "<i4", 1, 0)[0])
+    pos, strands = 4, []
+    for _ in range(count):
+        n = int(np.frombuffer(raw, "<i4", 1, pos)[0])
+        strands.append(np.frombuffer(raw, "<f4", 3 * n, pos + 4).reshape(n, 3).astype(np.float64))
+        pos += 4 + 12 * n
+    return strands
+
+
+def random_state(seed, n=12):
+    """Two random 3D strands, material frames twisted by random theta away from the transport frame,
+    and random rest values (so every energy term and every gradient block is nonzero)."""
+    rng = np.random.default_rng(seed)
+    x = np.linspace(0, 0.05, n)
+    a = np.stack([x, 0.004 * np.sin(150 * x), 0.003 * np.cos(90 * x)], 1) + 1e-4 * rng.standard_normal((n, 3))
+    b = a[::-1] * 1.1 + 0.1 + 3e-4 * rng.standard_normal((n, 3))
+    P, off = np.concatenate([a, b]), np.array([0, n, 2 * n])
+    _, length, t = dr.edge_geometry(P, off)
+    m1 = dr.rotate_about(dr.bishop_frames(P, off)[:, 0], t, 0.4 * rng.standard_normal(len(length)))
+    J = der_strain_jacobian(P, off, m1)
+    rest = (length * (1 + 1e-3 * rng.standard_normal(len(length))),
+            J["kappa"] + 0.05 * rng.standard_normal(J["kappa"].shape),
+            J["twist"] + 0.05 * rng.standard_normal(len(J["twist"])))
+    return P, off, m1, t, rest
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+@pytest.mark.parametrize("stretch", [True, False])
+def test_gradient_matches_finite_differences(seed, stretch):
+    """dE/dx with frames time-parallel transported along the perturbation, dE/dtheta by rotating
+    one material frame about its tangent; central differences.  Without stretch (rest lengths =
+    lengths) the bending/twisting part is tested on its own scale."""
+    P, off, m1, t, (rl, rk, rt) = random_state(seed)
+    if not stretch:
+        rl = dr.edge_geometry(P, off)[1]
+
+    def energy(Q, frames=None):
+        if frames is None:
+            frames = dr.transport(m1, t, dr.edge_geometry(Q, off)[2])
+        return der_energy(Q, off, frames, rl, rk, rt, MAT)
+
+    gx, gt = der_gradient(P, off, m1, rl, rk, rt, MAT)
+    h = 2e-9
+    fd = np.zeros_like(P)
+    for v in range(len(P)):
+        for c in range(3):
+            d = np.zeros_like(P)
+            d[v, c] = h
+            fd[v, c] = (energy(P + d) - energy(P - d)) / (2 * h)
+    np.testing.assert_allclose(gx, fd, atol=2e-6 * np.abs(gx).max())
+    ht = 1e-6
+    fdt = np.zeros(len(gt))
+    for j in range(len(gt)):
+        a = np.zeros(len(gt))
+        a[j] = ht
+        fdt[j] = (energy(P, dr.rotate_about(m1, t, a)) - energy(P, dr.rotate_about(m1, t, -a))) / (2 * ht)
+    np.testing.assert_allclose(gt, fdt, atol=2e-7 * np.abs(gt).max())
+
+
+def strands():
+    x = np.linspace(0.0, 0.2, 51)
+    out = [("horizontal 20 cm", np.stack([x, 0 * x, 0 * x], 1)),
+           ("wavy 3D 20 cm", np.stack([x, 0.01 * np.sin(40 * x), 0.005 * np.cos(25 * x)], 1)),
+           ("hanging curl 30 cm", np.stack([0.01 * np.cos(60 * x), -1.5 * x, 0.01 * np.sin(60 * x)], 1))]
+    if USC.is_file():
+        out += [(f"USC 00003 #{i}", s) for i, s in enumerate(load_cstrands(USC))]
+    return out
+
+
+def test_rest_data_residual(capsys):
+    """grad E = f_ext at the groom with the exported rest data (< 1e-8), re-evaluated from scratch:
+    masses from the exported rest lengths, strains and gradient recomputed, free dofs x_2.., theta^1..."""
+    names, pts = zip(*strands())
+    off = np.concatenate([[0], np.cumsum([len(p) for p in pts])])
+    P = np.concatenate(pts)
+    S = len(off) - 1
+    rng = np.random.default_rng(0)
+    L = dr.arc_lengths(P, off)[off[1:] - 1]
+    k = rng.integers(0, S, 3 * S)
+    pf = (k, rng.uniform(0.1, 0.9, 3 * S) * L[k], 2e-6 * rng.standard_normal((3 * S, 3)))
+    lines = []
+    for loads in (None, pf):
+        for stretching in ("stiff", "inextensible"):
+            d = der_rest_data(P, off, MAT, G, point_forces=loads, stretching=stretching)
+            V, E = len(d["rod_points"]), len(d["der_rest_lengths"])
+            assert d["der_rest_kappa"].shape == (V - 2 * S, 2) and d["der_rest_twist"].shape == (V - 2 * S,)
+            assert E == V - S
+            mass = dr.lumped_masses(d["der_rest_lengths"], off, MAT.linear_density)
+            f = mass[:, None] * G + dr.point_force_nodes(loads, off, dr.arc_lengths(P, off))
+            tension = d["der_tension"] if stretching == "inextensible" else None
+            r = der_residual(P, off, d["der_frames"][:, 0], d["der_rest_lengths"], d["der_rest_kappa"],
+                             d["der_rest_twist"], MAT, f, tension=tension)
+            lines.append(f"  {'loads' if loads else 'gravity':8s} {stretching:13s} ||grad E - f|| / ||f|| = "
+                         f"{r['force_rel']:.2e} (worst strand {r['per_strand_max']:.2e}), twist "
+                         f"{r['torque_rel']:.1e}")
+            # float64 floor of stiff stretching: the consumer forms EA (|e| / e~ - 1) by cancellation,
+            # one rounding is EA eps ~ 3e-15 N against ~1e-7 N of weight on a 2 mm edge (USC #3)
+            assert r["force_rel"] < 1e-8 and r["per_strand_max"] < 5e-8, r
+            assert r["torque_rel"] < 1e-12
+            if stretching == "inextensible":
+                assert r["force_rel"] < 1e-12
+                np.testing.assert_array_equal(d["der_rest_lengths"], dr.edge_geometry(P, off)[1])
+            else:   # rest lengths shorten under tension: strain = tension / EA ~ 1e-6
+                strain = dr.edge_geometry(P, off)[1] / d["der_rest_lengths"] - 1
+                np.testing.assert_allclose(strain * MAT.young_modulus * MAT.area, d["der_tension"],
+                                           rtol=1e-6, atol=1e-15)
+    with capsys.disabled():
+        print(f"\nDER residual at the groomed state ({S} strands: {', '.join(names)}):")
+        print("\n".join(lines))
+
+
+def test_der_and_cosserat_curvatures_agree_when_fine():
+    """(kappa1, kappa2)_DER ~ D (kappa_2, -kappa_1)_Cosserat for the same frames, and the rest values
+    agree to O(dx): the two exports describe the same rod."""
+    x = np.linspace(0.0, 0.1, 401)
+    P = np.stack([x, 0.01 * np.sin(40 * x), 0.005 * np.cos(25 * x)], 1)
+    c = cosserat_rest_data(P, [0, len(P)], MAT, G)
+    d = der_rest_data(P, [0, len(P)], MAT, G)
+    D = d["der_voronoi_lengths"][:, None]
+    cos_as_der = D * np.stack([c["cosserat_rest_kappa"][:, 1], -c["cosserat_rest_kappa"][:, 0]], 1)
+    scale = np.abs(d["der_rest_kappa"]).max()
+    assert np.abs(d["der_rest_kappa"] - cos_as_der).max() < 0.02 * scale
+    assert np.abs(d["der_rest_twist"] - D[:, 0] * c["cosserat_rest_kappa"][:, 2]).max() \
+        < 0.02 * np.abs(d["der_rest_twist"]).max()
+    np.testing.assert_allclose(d["der_frames"], c["cosserat_directors"])
