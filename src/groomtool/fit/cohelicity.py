@@ -1,0 +1,100 @@
+"""Co-helicity relaxation: move the samples, keep the tangents (MATH.md section 3.3).
+
+Per strand, given samples Q_0..Q_N and unit tangents t_0..t_N, find the closest points
+
+    min 1/2 sum_j |P_j - Q_j|^2   with P_0 = Q_0,   s.t.  g_i = (P_{i+1} - P_i) . dt_i = 0,  i < N,
+
+dt_i = t_{i+1} - t_i.  Stationarity of L = 1/2 sum |P - Q|^2 - sum_i lambda_i g_i gives
+
+    P_j = Q_j + lambda_{j-1} dt_{j-1} - lambda_j dt_j        (lambda_{-1} dt_{-1} := 0 is P_0 = Q_0, lambda_N := 0)
+
+and substituting into the constraints a symmetric tridiagonal system A A^T lambda = -b,
+b_i = (Q_{i+1} - Q_i) . dt_i:
+
+    diag_0 = |dt_0|^2,  diag_i = 2 |dt_i|^2 (i >= 1),  off_i = -dt_i . dt_{i+1}.
+
+A A^T is the Gram matrix of the constraint gradients: positive semi-definite, singular where
+dt_i = 0 (a straight piece has no constraint).  It is regularised by EPS on the diagonal, which only
+shrinks the moves (lambda_i dt_i) and leaves a residual g_i <= |Q_{i+1} - Q_i| sqrt(EPS) where
+|dt_i|^2 < EPS.  Solved by the Thomas algorithm (no pivoting needed: SPD), vectorised over strands,
+looping over i.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .kernels import dot
+
+EPS = 1e-24
+
+
+def relax_points(samples, tangents, n_elements=None, eps: float = EPS) -> np.ndarray:
+    """Closest co-helical points P (S, N+1, 3) to samples Q (S, N+1, 3) keeping the tangents, P_0 = Q_0.
+
+    Strands are padded to N elements; strand k uses its first n_elements[k] + 1 samples (the rest
+    are copied unchanged).  A single strand (N+1, 3) is accepted too.
+    """
+    Q = np.asarray(samples, dtype=np.float64)
+    T = np.asarray(tangents, dtype=np.float64)
+    single = Q.ndim == 2
+    if single:
+        Q, T = Q[None], T[None]
+    S, N1, _ = Q.shape
+    n_elements = np.full(S, N1 - 1, dtype=np.int64) if n_elements is None else np.asarray(n_elements, dtype=np.int64)
+    P = Q.copy() if N1 == 1 else _project(Q, T[:, 1:] - T[:, :-1], n_elements, eps)
+    return P[0] if single else P
+
+
+def constraint_residuals(points, tangents, n_elements=None) -> np.ndarray:
+    """g_i = (P_{i+1} - P_i) . (t_{i+1} - t_i), (S, N) (zero on padding)."""
+    P = np.asarray(points, dtype=np.float64)
+    T = np.asarray(tangents, dtype=np.float64)
+    single = P.ndim == 2
+    if single:
+        P, T = P[None], T[None]
+    g = dot(P[:, 1:] - P[:, :-1], T[:, 1:] - T[:, :-1])
+    if n_elements is not None:
+        g = np.where(np.arange(g.shape[1])[None, :] < np.asarray(n_elements)[:, None], g, 0.0)
+    return g[0] if single else g
+
+
+def _project(X, V, n_elements, eps):
+    """Closest X' to X, X'_0 = X_0, with (X'_{i+1} - X'_i) . V_i = 0 for i < n: the KKT system above.
+
+    X (S, N+1, 3); V (S, N, 3) the constraint directions (dt_i); padding has V = 0.
+    """
+    S, N1, _ = X.shape
+    N = N1 - 1
+    real = np.arange(N)[None, :] < n_elements[:, None]
+    V = np.where(real[..., None], V, 0.0)
+    dx = np.where(real[..., None], X[:, 1:] - X[:, :-1], 0.0)
+    diag = 2.0 * dot(V, V)
+    diag[:, 0] *= 0.5
+    diag += eps
+    off = -dot(V[:, :-1], V[:, 1:])
+    rhs = -dot(dx, V)
+    lam = _thomas(diag, off, rhs)
+    move = lam[..., None] * V
+    out = X.copy()
+    out[:, 1:] += move
+    out[:, 1:-1] -= move[:, 1:]
+    return out
+
+
+def _thomas(diag, off, rhs):
+    """Solve the symmetric tridiagonal systems (diag, off) lam = rhs, batched over rows."""
+    S, N = diag.shape
+    cp = np.empty((S, N))
+    rp = np.empty((S, N))
+    cp[:, 0] = diag[:, 0]
+    rp[:, 0] = rhs[:, 0]
+    for i in range(1, N):
+        w = off[:, i - 1] / cp[:, i - 1]
+        cp[:, i] = diag[:, i] - w * off[:, i - 1]
+        rp[:, i] = rhs[:, i] - w * rp[:, i - 1]
+    lam = np.empty((S, N))
+    lam[:, N - 1] = rp[:, N - 1] / cp[:, N - 1]
+    for i in range(N - 2, -1, -1):
+        lam[:, i] = (rp[:, i] - off[:, i] * lam[:, i + 1]) / cp[:, i]
+    return lam

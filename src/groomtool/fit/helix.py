@@ -1,0 +1,229 @@
+"""The circular helix through two co-helical point-tangent pairs, batched (MATH.md section 3.1).
+
+Given unit tangents t0, t1 and a chord c = P1 - P0 with c . (t1 - t0) = 0, find the world rotation
+vector Phi = l Omega and the arc length l of the helix starting at P0 along t0 and ending at P1 along t1:
+
+    exp([Phi]x) t0 = t1,      c = l (I + f2(|Phi|^2) [Phi]x + f3(|Phi|^2) [Phi]x^2) t0.
+
+**Reduction to one unknown.**  Any axis a taking t0 to t1 by a rotation is equidistant from them, so
+a lies in the plane Pi orthogonal to n = (t1 - t0) / |t1 - t0|; so do the bisector m = t0 + t1 and
+(by co-helicity) the chord.  With d = |t1 - t0| / 2, e = n x a, the half winding h and the angle
+alpha between a and t0 follow in closed form from the axis alone:
+
+    cos alpha = a . m/2,   sin alpha cos h = e . m/2,   sin alpha sin h = d
+    =>  h = atan2(d, e . m/2),   and the helix chord is  c / l = (a . m/2) a + (d / h) e.
+
+Parametrise a = cos(phi) b1 + sin(phi) b2 in Pi (b2 = m/|m|, b1 = b2 x n: phi = 0 is the minimal
+rotation, a planar circular arc).  The chord direction must match the angle gamma of c in Pi:
+
+    F(phi) = atan2(d, h(phi) (a . m/2)) - (gamma - phi) = 0,      phi in (gamma - pi, gamma).
+
+F is negative at the left end, positive at the right end and strictly increasing (F' >= d^2/3,
+checked numerically over the whole circle), so **the root is unique**: for a given pair there is
+exactly one interpolating helix with winding 2h in (0, 2 pi), no free parameter.  It is found by a
+bracketed Newton iteration (bisection fallback) to round-off.  Then Phi = 2 h a and
+l = |c| / sqrt((a . m/2)^2 + (d/h)^2).
+
+Nearly straight pieces (d < 1e-9, chord within 1e-6 rad of m): the direction n is then known only to
+~1e-16/d, and the twist (the axis tilt phi, tan(phi) ~ 3 delta / d^2 for a chord-bisector angle delta)
+is amplified noise; the minimal rotation (phi = 0: a planar arc, least twist, l = |c| h / sin h) is
+returned instead, with a chord error |c| delta.  t1 = t0 to round-off (d < 1e-15) with the chord off
+t0: one full turn about c (Phi = 2 pi c/|c|, l = |c| / (t0 . c/|c|)).  t1 = -t0 (m = 0): b2 is
+taken along the chord, and the same equation gives the half turn about t0 x c.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .kernels import cross, dot, f123
+
+_TINY = 1e-300
+STRAIGHT_D = 1e-9        # d below this and chord along t0 + t1: a planar arc (twist undetermined)
+FLAT_D = 1e-15           # d below this: t1 == t0 to round-off, the plane Pi is undefined
+ANTIPODAL_M = 1e-8       # |t0 + t1| below this: t1 == -t0, the bisector is not a direction
+
+
+@dataclass
+class HelixSolution:
+    """Per element: ``phi`` (E, 3) world rotation vector l * Omega, ``length`` (E,) arc length,
+    ``iterations`` (E,) Newton/bisection steps, ``kind`` (E,) 0 general, 1 nearly straight (planar arc),
+    2 full turn, 3 no helix (t1 == t0, chord not ahead of t0: a straight element is returned)."""
+
+    phi: np.ndarray
+    length: np.ndarray
+    iterations: np.ndarray
+    kind: np.ndarray
+
+
+def _unit(v):
+    n = np.sqrt(dot(v, v))
+    return v / np.maximum(n, _TINY)[..., None], n
+
+
+def _F(phi, d, mb1, mb2, gamma):
+    """F(phi) and F'(phi); m_a = a.m/2, m_e = e.m/2 with a' = e, e' = -a."""
+    c, s = np.cos(phi), np.sin(phi)
+    ma = c * mb1 + s * mb2
+    me = c * mb2 - s * mb1
+    h = np.arctan2(d, me)
+    H = h * ma
+    dh = d * ma / (d * d + me * me)
+    dH = dh * ma + h * me
+    F = np.arctan2(d, H) - gamma + phi
+    dF = 1.0 - d * dH / (d * d + H * H)
+    return F, dF
+
+
+def solve_helix(t0, t1, chord, chord_tolerance=None, max_iter: int = 100) -> HelixSolution:
+    """Solve exp([Phi]x) t0 = t1, chord = l (I + f2 [Phi]x + f3 [Phi]x^2) t0 for (Phi, l), batched.
+
+    t0, t1, chord (E, 3); the tangents are normalised here.  The chord should satisfy co-helicity;
+    its component along t1 - t0 is ignored (it cannot be matched) and shows in :func:`helix_residuals`.
+
+    ``chord_tolerance`` (scalar or (E,), metres; default exact): a noise gate on the twist.  Where the
+    planar arc (phi = 0, the minimal rotation: least twist) misses the chord direction by at most
+    chord_tolerance / |c| rad (|F(0)| below that), it is taken (gamma shifted by F(0)); elsewhere the
+    exact helix.  The end tangent stays exact and the chord length is matched.  (Trimming the twist
+    of the other elements down to the tolerance instead was tried: it biases the element lengths,
+    shortening curly strands by ~0.4 %.)
+    """
+    t0, _ = _unit(np.asarray(t0, dtype=np.float64).reshape(-1, 3))
+    t1, _ = _unit(np.asarray(t1, dtype=np.float64).reshape(-1, 3))
+    chord = np.asarray(chord, dtype=np.float64).reshape(-1, 3)
+    E = len(t0)
+    phi_out = np.zeros((E, 3))
+    length = np.zeros(E)
+    iterations = np.zeros(E, dtype=np.int64)
+    kind = np.zeros(E, dtype=np.int64)
+
+    n, D = _unit(t1 - t0)
+    d = 0.5 * D
+
+    # ---- t1 == t0 to round-off: straight piece (planar arc), or one full turn about the chord
+    ch, cl = _unit(chord)
+    mh, _ = _unit(t0 + t1)
+    along = dot(ch, mh) >= 1.0 - 5e-13          # chord within 1e-6 rad of the bisector
+    arc = (d < STRAIGHT_D) & along
+    if np.any(arc):
+        # the minimal rotation (least twist): a planar arc of winding 2 asin(d), chord l sin(h)/h
+        axis, _ = _unit(cross(t0[arc], t1[arc]))
+        h = np.arcsin(np.minimum(d[arc], 1.0))
+        phi_out[arc] = (2.0 * h)[:, None] * axis
+        length[arc] = cl[arc] / np.sinc(h / np.pi)
+        kind[arc] = 1
+    flat = (d < FLAT_D) & ~arc
+    if np.any(flat):
+        idx = np.nonzero(flat)[0]
+        cos_a = dot(ch[idx], t0[idx])
+        turn = cos_a > 1e-12
+        kind[idx[turn]] = 2
+        phi_out[idx[turn]] = 2.0 * np.pi * ch[idx[turn]]
+        length[idx[turn]] = cl[idx[turn]] / cos_a[turn]
+        kind[idx[~turn]] = 3
+        length[idx[~turn]] = cl[idx[~turn]]
+
+    # ---- general case
+    gen = np.nonzero(~flat & ~arc)[0]
+    if len(gen):
+        t0g, t1g, cg, ng, dg = t0[gen], t1[gen], chord[gen], n[gen], d[gen]
+        m = t0g + t1g
+        c_pi = cg - dot(cg, ng)[:, None] * ng          # chord projected on Pi
+        mh, mlen = _unit(m)
+        anti = mlen < ANTIPODAL_M
+        if np.any(anti):
+            mh[anti], _ = _unit(c_pi[anti])
+        b2 = mh
+        b1 = cross(b2, ng)
+        half_m = 0.5 * m
+        mb1, mb2 = dot(half_m, b1), dot(half_m, b2)
+        gamma = np.arctan2(dot(c_pi, b2), dot(c_pi, b1))
+        if chord_tolerance is not None:
+            budget = np.broadcast_to(np.asarray(chord_tolerance, dtype=np.float64), (E,))[gen]
+            angle = budget / np.maximum(np.sqrt(dot(c_pi, c_pi)), _TINY)
+            F0, _ = _F(np.zeros(len(gen)), dg, mb1, mb2, gamma)
+            gamma = gamma + np.where(np.abs(F0) <= angle, F0, 0.0)
+        lo, hi = gamma - np.pi, gamma.copy()
+        # initial guess: the small-winding asymptote F ~ d^2 tan(phi) / (3 M^2) - (gamma - pi/2)
+        M2 = np.maximum(1.0 - dg * dg, 0.0)
+        x = np.arctan2(3.0 * M2 * (gamma - 0.5 * np.pi), dg * dg)
+        x = np.where((x > lo) & (x < hi), x, gamma - 0.5 * np.pi)
+        active = np.arange(len(gen))
+        its = np.zeros(len(gen), dtype=np.int64)
+        for _ in range(max_iter):
+            if len(active) == 0:
+                break
+            xa, la, ha = x[active], lo[active], hi[active]
+            F, dF = _F(xa, dg[active], mb1[active], mb2[active], gamma[active])
+            neg = F < 0.0
+            la = np.where(neg, xa, la)
+            ha = np.where(neg, ha, xa)
+            step = F / np.maximum(dF, _TINY)
+            xn = xa - step
+            tol = 2e-16 * (1.0 + np.abs(xa))
+            done = (np.abs(step) <= tol) | (ha - la <= 2.0 * tol)
+            outside = ~((xn > la) & (xn < ha)) & ~done
+            xn = np.where(outside, 0.5 * (la + ha), xn)
+            x[active], lo[active], hi[active] = xn, la, ha
+            its[active] += 1
+            active = active[~done]
+        a = np.cos(x)[:, None] * b1 + np.sin(x)[:, None] * b2
+        e = cross(ng, a)
+        ma = dot(half_m, a)
+        me = dot(half_m, e)
+        h = np.arctan2(dg, me)
+        phi_out[gen] = (2.0 * h)[:, None] * a
+        length[gen] = np.sqrt(dot(c_pi, c_pi)) / np.sqrt(ma * ma + (dg / h) ** 2)
+        iterations[gen] = its
+    return HelixSolution(phi_out, length, iterations, kind)
+
+
+def rotate(phi, v):
+    """exp([Phi]x) v = v + f1 Phi x v + f2 Phi x (Phi x v), f_n = f_n(|Phi|^2)."""
+    f1, f2, _ = f123(dot(phi, phi))
+    pv = cross(phi, v)
+    return v + f1[..., None] * pv + f2[..., None] * cross(phi, pv)
+
+
+def helix_chord(phi, length, t0):
+    """l (I + f2 [Phi]x + f3 [Phi]x^2) t0: the chord of the helix of rotation Phi and length l."""
+    _, f2, f3 = f123(dot(phi, phi))
+    pv = cross(phi, t0)
+    return length[..., None] * (t0 + f2[..., None] * pv + f3[..., None] * cross(phi, pv))
+
+
+def helix_residuals(phi, length, t0, t1, chord):
+    """Max-norm residuals per element: |exp([Phi]x) t0 - t1| and |helix chord - chord|."""
+    rt = np.abs(rotate(phi, t0) - t1).max(axis=-1)
+    rc = np.abs(helix_chord(phi, length, t0) - chord).max(axis=-1)
+    return rt, rc
+
+
+def cohelicity_defect(t0, t1, chord):
+    """(P1 - P0) . (t1 - t0): zero iff the pair can be joined by a circular helix."""
+    return dot(chord, np.asarray(t1) - np.asarray(t0))
+
+
+def solve_chain(P, T, n_elements, chord_tolerance) -> HelixSolution:
+    """Helices along strands, planar arcs where within tolerance, with error feedback; flat (E,).
+
+    P, T (S, N+1, 3) padded points and tangents, n_elements (S,), chord_tolerance (S,) metres.
+    Element i aims at P_{i+1} from the node C_i actually reached: C_{i+1} = C_i + chord(Phi_i, l_i, t_i)
+    with (Phi_i, l_i) the helix of (t_i, t_{i+1}) for the chord P_{i+1} - C_i within the tolerance,
+    so the chord deviations do not accumulate along the strand.  A loop over i, batched over strands.
+    """
+    S, N1, _ = P.shape
+    N = N1 - 1
+    phi, lengths = np.zeros((S, N, 3)), np.zeros((S, N))
+    its, kind = np.zeros((S, N), dtype=np.int64), np.zeros((S, N), dtype=np.int64)
+    C = P[:, 0].copy()
+    tol = np.broadcast_to(np.asarray(chord_tolerance, dtype=np.float64), (S,))
+    for i in range(N):
+        act = np.nonzero(i < n_elements)[0]
+        sol = solve_helix(T[act, i], T[act, i + 1], P[act, i + 1] - C[act], tol[act])
+        phi[act, i], lengths[act, i], its[act, i], kind[act, i] = sol.phi, sol.length, sol.iterations, sol.kind
+        C[act] += helix_chord(sol.phi, sol.length, T[act, i])
+    mask = np.arange(N)[None, :] < n_elements[:, None]
+    return HelixSolution(phi[mask], lengths[mask], its[mask], kind[mask])

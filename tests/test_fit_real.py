@@ -1,0 +1,79 @@
+"""The fit on real grooms (../shared/data): every strand within tolerance, errors measured independently."""
+
+import numpy as np
+import pytest
+
+from groomtool.fit import fit_groom
+from groomtool.fit.error import closest_distances
+from groomtool.fit.sampling import vertex_arc_lengths
+from groomtool.fit.state import curve_table
+from groomtool.groom import Groom
+
+
+def read_data(path, scale=1.0):
+    """USC-HairSalon .data: int32 strand count, per strand int32 n and n float32 xyz."""
+    raw = np.fromfile(path, dtype=np.uint8)
+    count = int(raw[:4].view("<i4")[0])
+    strands, pos = [], 4
+    for _ in range(count):
+        n = int(raw[pos:pos + 4].view("<i4")[0])
+        pos += 4
+        strands.append(raw[pos:pos + 12 * n].view("<f4").reshape(n, 3).astype(np.float64) * scale)
+        pos += 12 * n
+    return strands
+
+
+def check(groom, res, tol):
+    assert res.converged.all(), f"strands above tolerance: {res.failed}"
+    assert res.max_error.max() <= tol
+    # the errors again, from the returned SuperHelix alone (through superhelix.kinematics)
+    arc, L = vertex_arc_lengths(groom.points, groom.offsets)
+    strand = groom.strand_index
+    d, _, _ = closest_distances(curve_table(res.helix), groom.points, strand,
+                                arc / L[strand] * res.helix.strand_lengths[strand])
+    again = np.zeros(groom.n_strands)
+    np.maximum.at(again, strand, d)
+    assert np.allclose(again, res.max_error, rtol=0, atol=1e-12)
+
+
+@pytest.fixture(scope="module")
+def usc_groom(shared_data):
+    files = sorted((shared_data / "usc" / "cstrands").glob("*.data"))
+    if not files:
+        pytest.skip("no USC cstrands files")
+    strands = [s for f in files[::3] for s in read_data(f)]           # 115 styles, 575 strands
+    return Groom.from_strands(strands, source="usc cstrands (every 3rd style)")
+
+
+@pytest.fixture(scope="module")
+def harolongo(shared_data):
+    path = shared_data / "digital-salon" / "harolongo.data"
+    if not path.exists():
+        pytest.skip("harolongo.data not found")
+    strands = read_data(path, scale=0.01)                               # centimetres
+    return Groom.from_strands(strands[::4], source="harolongo (every 4th strand)")
+
+
+def test_usc_styles_within_absolute_tolerance(usc_groom):
+    res = fit_groom(usc_groom, tolerance=5e-4)
+    check(usc_groom, res, 5e-4)
+    assert res.helix.n_elements.max() < 256
+
+
+def test_usc_styles_relative_tolerance(usc_groom):
+    res = fit_groom(usc_groom, tolerance=5e-4, relative_tolerance=1e-3)
+    tol = np.minimum(5e-4, 1e-3 * usc_groom.lengths())
+    assert np.allclose(res.tolerance, tol)
+    assert res.converged.all() and np.all(res.max_error <= tol)
+
+
+def test_usc_exact_helices(usc_groom):
+    """twist_budget=0: every element exactly through its relaxed points; still within tolerance."""
+    res = fit_groom(usc_groom, tolerance=5e-4, twist_budget=0.0)
+    check(usc_groom, res, 5e-4)
+
+
+def test_harolongo_within_tolerance(harolongo):
+    res = fit_groom(harolongo, tolerance=5e-4)
+    check(harolongo, res, 5e-4)
+    assert np.all(res.relative_max_error < 5e-4 / 0.2)
