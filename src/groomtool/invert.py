@@ -45,12 +45,14 @@ class InversionParams:
     contacts: str = "none"  # none | head | all
     contact_radius: float | None = None
     guess: str = "current"  # current | tip
-    gamma: float = 1e-6
+    gamma: float = 1e-4
     solver: str = "auto"  # clarabel | gs | auto
-    solver_tolerance: float = 1e-10
+    solver_tolerance: float = 1e-8
     max_iterations: int = 5000
     snap_roots: bool = False
     samples_per_element: int = 8
+    rod_segments: int | None = None  # discrete rest data: None = the input's own vertices
+    discrete_rest_data: bool = True
 
     def __post_init__(self):
         if self.contacts not in CONTACT_MODES:
@@ -61,6 +63,8 @@ class InversionParams:
             raise ValueError(f"gamma must be >= 0, got {self.gamma}")
         if not (self.tolerance > 0):
             raise ValueError(f"tolerance must be > 0, got {self.tolerance}")
+        if self.rod_segments is not None and self.rod_segments < 2:
+            raise ValueError(f"rod_segments must be >= 2, got {self.rod_segments}")
 
 
 def isolated_rest_curvatures(helix: sh.SuperHelix, material: Material, gravity, kin=None) -> np.ndarray:
@@ -313,6 +317,12 @@ def invert_groom(groom: Groom, head=None, params: InversionParams | None = None,
         with timer.stage("rest_curvatures"):
             rest = isolated_rest_curvatures(helix, material, gravity, kin)
 
+    extra = {}
+    if params.discrete_rest_data:
+        with timer.stage("discrete_rest_data"):
+            extra, report["discrete_rest_data"] = discrete_rest_data(
+                groom, helix, material, gravity, contacts, forces, params.rod_segments)
+
     with timer.stage("equilibrium_check"):
         residual = equilibrium_residuals(helix, rest, material, gravity, contacts, forces)
     report["equilibrium"] = {"max_relative_residual": float(residual.max()) if len(residual) else 0.0,
@@ -341,7 +351,48 @@ def invert_groom(groom: Groom, head=None, params: InversionParams | None = None,
     return InversionResult(groom=groom, head=head, params=params, helix=helix, rest_curvatures=rest,
                            fit_max_error=np.asarray(fit.max_error), fit_mean_error=np.asarray(fit.mean_error),
                            gravity=gravity, contacts=contacts, forces=forces, stiffness_ratio=ratio,
-                           report=report)
+                           report=report, extra_arrays=extra)
+
+
+DISCRETE_KEYS = ("rod_points", "rod_offsets", "cosserat_directors", "cosserat_rest_kappa", "cosserat_rest_sigma",
+                 "cosserat_rest_lengths", "der_rest_lengths", "der_rest_kappa", "der_rest_twist")
+
+
+def contact_point_forces(groom: Groom, helix: sh.SuperHelix, contacts, forces):
+    """Contact forces as world point loads (strand, arc length along the input polyline, force):
+    F_i^T r_i on strand a, its opposite on strand b; the fitted arc length is rescaled to the polyline's."""
+    if contacts is None or len(forces) == 0:
+        return None
+    world = np.einsum("pji,pj->pi", np.asarray(contacts.frame), forces)
+    strand_b = np.asarray(contacts.strand_b)
+    on_b = strand_b >= 0
+    strands = np.concatenate([np.asarray(contacts.strand_a), strand_b[on_b]])
+    s = np.concatenate([np.asarray(contacts.s_a), np.asarray(contacts.s_b)[on_b]])
+    f = np.concatenate([world, -world[on_b]])
+    s_poly = s * groom.lengths()[strands] / helix.strand_lengths[strands]
+    return strands, s_poly, f
+
+
+def discrete_rest_data(groom: Groom, helix, material: Material, gravity, contacts, forces, segments=None):
+    """Cosserat (PyElastica) and DER rest data that make the groomed polylines an exact discrete
+    equilibrium under gravity and the solved contact forces (docs/rest_data.md)."""
+    from .groom import GroomError
+    from .rods.cosserat import cosserat_rest_data
+    from .rods.der import der_rest_data
+    from .rods.discrete import RestDataError, prepare_rods
+
+    loads = contact_point_forces(groom, helix, contacts, forces)
+    try:
+        rod = prepare_rods(groom.points, groom.offsets, segments)
+        cos = cosserat_rest_data(groom.points, groom.offsets, material, gravity, loads, rod=rod)
+        der = der_rest_data(groom.points, groom.offsets, material, gravity, loads, rod=rod)
+    except RestDataError as exc:
+        raise GroomError(f"{groom.source}: discrete rest data: {exc} (try --rod-segments N)") from exc
+    merged = {**cos, **der}
+    arrays = {k: merged[k] for k in DISCRETE_KEYS}
+    report = {"segments": "input vertices" if segments is None else int(segments),
+              "cosserat_residual": cos["cosserat_residual"], "der_residual": der["der_residual"]}
+    return arrays, report
 
 
 def stiffness_ratios_progress(helix, material, gravity, quiet):
@@ -380,5 +431,6 @@ def _solve(problem: InverseProblem, helix: sh.SuperHelix, params: InversionParam
     res = solve_contact_problem(cp, law="soc", method=params.solver, tol=params.solver_tolerance,
                                 max_iter=params.max_iterations)
     forces = np.asarray(res.r).reshape(-1, 3) * problem.f_scale
-    return {"forces": forces, "solver": res.method, "status": res.status, "converged": bool(res.converged),
+    status = "solved" if res.converged else str(res.status)
+    return {"forces": forces, "solver": res.method, "status": status, "converged": bool(res.converged),
             "iterations": int(res.iterations), "residual": float(res.residual), "time_s": float(res.time_s)}

@@ -1,0 +1,215 @@
+"""The ``groom`` command line.
+
+Exit codes: 0 success, 1 user error (bad input, bad option), 2 a solver did not converge.
+All lengths inside are metres; ``--units`` states the unit of the input files and is converted.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+EXIT_OK, EXIT_USER_ERROR, EXIT_NOT_CONVERGED = 0, 1, 2
+
+EPILOG_INVERT = """examples:
+  groom invert strands.obj --head head.obj -o out --contacts all
+  groom invert harolongo.data --units cm --head head.obj --contacts head --snap-roots
+  groom invert guides.hair --up z --tolerance 2e-4 --young 2.5e9 --radius 35e-6 --quiet
+
+outputs (in OUTDIR, each written atomically): rest.npz, rest_shape.obj, fitted.obj, report.json
+exit codes: 0 ok, 1 user error, 2 solver did not converge (nothing written)
+"""
+
+
+def _add_input_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--units", choices=["m", "cm", "mm"], default="m",
+                   help="unit of the input coordinates (and of the head mesh); converted to metres (default m)")
+    p.add_argument("--up", choices=["y", "z"], default="y", help="the up axis of the input (default y)")
+    p.add_argument("--repair", action="store_true",
+                   help="drop duplicate consecutive points and strands of fewer than 2 points instead of failing")
+    p.add_argument("--strand-length", type=int, default=None, metavar="N",
+                   help="vertices per strand for OBJ files with vertices only (no 'l' records)")
+
+
+def _add_material_options(p: argparse.ArgumentParser) -> None:
+    from ..material import Material
+
+    d = Material()
+    p.add_argument("--young", type=float, default=d.young_modulus, help=f"Young's modulus, Pa (default {d.young_modulus:g})")
+    p.add_argument("--shear", type=float, default=None, help="shear modulus, Pa (default Young / 3)")
+    p.add_argument("--radius", type=float, default=d.radius, help=f"fibre radius, m (default {d.radius:g})")
+    p.add_argument("--density", type=float, default=d.density, help=f"density, kg/m^3 (default {d.density:g})")
+    p.add_argument("--friction", type=float, default=d.friction, help=f"Coulomb friction coefficient (default {d.friction:g})")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="groom", description="Hair grooming and inversion: rest curvatures that make a groom an equilibrium.")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    inv = sub.add_parser("invert", help="compute rest curvatures that hold the groom in place",
+                         epilog=EPILOG_INVERT, formatter_class=argparse.RawDescriptionHelpFormatter)
+    inv.add_argument("input", help="groom file: .obj (polylines), .data (USC-HairSalon), .hair (Cem Yuksel), .ply (edges)")
+    inv.add_argument("--head", default=None, help="head mesh (.obj, .ply, .stl), same units as the input")
+    inv.add_argument("-o", "--output", default="groom_out", help="output directory (default ./groom_out)")
+    _add_input_options(inv)
+    inv.add_argument("--tolerance", type=float, default=5e-4,
+                     help="max distance of the input points to the fitted helices, in --units (default 0.5 mm)")
+    inv.add_argument("--relative-tolerance", type=float, default=None,
+                     help="fit tolerance as a fraction of each strand's length (the smaller of both applies)")
+    inv.add_argument("--contacts", choices=["none", "head", "all"], default="none",
+                     help="contacts to account for: none (isolated strands), head, all (head and strand/strand)")
+    inv.add_argument("--contact-radius", type=float, default=None,
+                     help="contact thickness around each strand axis, in --units (default: see docs/contact.md)")
+    inv.add_argument("--snap-roots", action="store_true",
+                     help="move each strand so its root lies on the head surface (else the gap is reported)")
+    inv.add_argument("--guess", choices=["current", "tip"], default="current",
+                     help="rest-curvature guess of the inverse problem: the groomed curvatures, or each strand's tip curvature")
+    inv.add_argument("--gamma", type=float, default=None,
+                     help="regularisation of the contact forces, relative to the Delassus diagonal (default 1e-4; see docs/maths.md)")
+    inv.add_argument("--solver", choices=["clarabel", "gs", "auto"], default="auto",
+                     help="contact solver: clarabel (exact, small cases), gs (Gauss-Seidel), auto (by size)")
+    inv.add_argument("--rod-segments", type=int, default=None, metavar="N",
+                     help="resolution of the discrete (Cosserat/DER) rest data: N equal segments per strand "
+                          "(default: the input's own vertices)")
+    inv.add_argument("--format", action="append", choices=["npz", "obj", "json"], default=None,
+                     help="output formats (repeatable; default npz, obj, json)")
+    _add_material_options(inv)
+    inv.add_argument("-q", "--quiet", action="store_true", help="no progress bars and no summary")
+
+    ex = sub.add_parser("example", help="write the bundled example groom (example.obj) and head (head.obj)")
+    ex.add_argument("directory", nargs="?", default="example", help="where to write them (default ./example)")
+    ex.add_argument("--strands", type=int, default=200, help="number of strands (default 200)")
+
+    info = sub.add_parser("info", help="print strand and vertex counts, lengths and bounding box")
+    info.add_argument("input")
+    _add_input_options(info)
+    return parser
+
+
+def _material(args):
+    from ..material import Material
+
+    return Material(young_modulus=args.young, radius=args.radius, density=args.density,
+                    friction=args.friction, shear_modulus=args.shear)
+
+
+def _load_inputs(args):
+    from ..groom import UNIT_SCALE
+    from ..io import load_groom, load_head
+
+    groom = load_groom(args.input, units=args.units, up=args.up, repair=args.repair,
+                       strand_length=args.strand_length)
+    head = load_head(args.head, units=args.units) if getattr(args, "head", None) else None
+    return groom, head, UNIT_SCALE[args.units]
+
+
+def cmd_info(args) -> int:
+    groom, _, _ = _load_inputs(args)
+    lengths = groom.lengths()
+    counts = groom.counts
+    lo, hi = groom.bounds()
+    print(f"{groom.source}")
+    print(f"  strands   {groom.n_strands}")
+    print(f"  vertices  {groom.n_points} (per strand min {counts.min()}, median {int(np.median(counts))}, max {counts.max()})")
+    print(f"  length    min {lengths.min():.4f} m, median {np.median(lengths):.4f} m, max {lengths.max():.4f} m")
+    print(f"  bounds    [{lo[0]:.4f} {lo[1]:.4f} {lo[2]:.4f}] .. [{hi[0]:.4f} {hi[1]:.4f} {hi[2]:.4f}] m")
+    print(f"  up axis   {groom.up}   (input units: {args.units}, shown in metres)")
+    return EXIT_OK
+
+
+def cmd_invert(args) -> int:
+    from ..invert import SolverFailure, invert_groom
+
+    groom, head, scale = _load_inputs(args)
+    if args.contacts == "head" and head is None:
+        raise UserError("--contacts head needs --head MESH")
+    try:
+        params = _invert_params(args, scale)
+    except ValueError as exc:
+        raise UserError(str(exc)) from exc
+    try:
+        result = invert_groom(groom, head=head, params=params, quiet=args.quiet)
+    except SolverFailure as exc:
+        print(f"groom invert: {exc}; nothing was written", file=sys.stderr)
+        return EXIT_NOT_CONVERGED
+    result.report["input_units"] = args.units
+    formats = tuple(args.format) if args.format else ("npz", "obj", "json")
+    written = result.save(args.output, formats=formats)
+    if not args.quiet:
+        print(summary(result, written))
+    return EXIT_OK
+
+
+def _invert_params(args, scale):
+    from ..invert import InversionParams
+
+    return InversionParams(
+        material=_material(args), tolerance=args.tolerance * scale,
+        relative_tolerance=args.relative_tolerance, contacts=args.contacts,
+        contact_radius=None if args.contact_radius is None else args.contact_radius * scale,
+        guess=args.guess, solver=args.solver, snap_roots=args.snap_roots, rod_segments=args.rod_segments,
+        **({} if args.gamma is None else {"gamma": args.gamma}))
+
+
+def summary(result, written) -> str:
+    r = result.report
+    lines = [f"groom invert: {r['strands']} strands, {r['elements']} helix elements  ({r['input']})",
+             f"  fit          max error {r['fit']['max_error_m'] * 1e3:.3f} mm, mean {r['fit']['mean_error_m'] * 1e3:.3f} mm"
+             f" (tolerance {r['fit']['tolerance_m'] * 1e3:.3f} mm)"]
+    if "contacts" in r:
+        c, s = r["contacts"], r["solve"]
+        lines.append(f"  contacts     {c['total']} ({c['strand_head']} head, {c['strand_strand']} strand/strand)")
+        lines.append(f"  solve        {s['solver']}: {s['status']}, {s['iterations']} iterations, "
+                     f"residual {s['residual']:.2e}, cone violation {s['cone_violation']:.1e} N")
+    lines.append(f"  equilibrium  max relative residual {r['equilibrium']['max_relative_residual']:.2e}")
+    st = r["stability"]
+    if st["unstable_strands"]:
+        lines.append(f"  stability    {st['unstable_strands']} strands unstable in isolation: Young's modulus would "
+                     f"have to be {st['required_young_modulus_factor']:.2f}x larger for all to stand alone")
+    else:
+        lines.append("  stability    every strand is a stable equilibrium on its own")
+    if "roots" in r:
+        lines.append(f"  roots        {r['roots']['mode']}: median gap {r['roots']['median_gap_m'] * 1e3:.2f} mm, "
+                     f"max {r['roots']['max_gap_m'] * 1e3:.2f} mm")
+    lines.append(f"  time         {r['timings_s']['total']:.2f} s   "
+                 + ", ".join(f"{k} {v:.2f}" for k, v in r["timings_s"].items() if k != "total"))
+    lines.append("  wrote        " + ", ".join(str(p) for p in written))
+    return "\n".join(lines)
+
+
+class UserError(Exception):
+    """A mistake in the command line or input: printed without a traceback, exit code 1."""
+
+
+def cmd_example(args) -> int:
+    from ..examples import write_example
+
+    paths = write_example(args.directory, n_strands=args.strands)
+    print("wrote " + ", ".join(str(p) for p in paths))
+    return EXIT_OK
+
+
+COMMANDS = {"invert": cmd_invert, "info": cmd_info, "example": cmd_example}
+
+
+def main(argv=None) -> int:
+    from ..groom import GroomError
+
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return COMMANDS[args.command](args)
+    except (GroomError, UserError, FileNotFoundError) as exc:
+        print(f"groom {args.command}: error: {exc}", file=sys.stderr)
+        return EXIT_USER_ERROR
+    except KeyboardInterrupt:
+        print(f"groom {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

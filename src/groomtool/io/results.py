@@ -1,0 +1,101 @@
+"""Write an inversion result into an output directory: rest.npz, rest_shape.obj, fitted.obj, report.json.
+
+Every file is written atomically (temp file then rename): an existing output is never half-overwritten.
+The schema of rest.npz is documented in docs/outputs.md.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from ..groom import Groom
+from .atomic import atomic_open
+
+NPZ_SCHEMA_VERSION = 1
+
+
+def result_arrays(result) -> dict:
+    """The arrays of rest.npz (flat, unpadded, SI units)."""
+    helix = result.helix
+    mat = result.material
+    flat_offsets = helix.flat_offsets()
+    arrays = {
+        "schema_version": np.array(NPZ_SCHEMA_VERSION),
+        "strand_offsets": flat_offsets,
+        "element_lengths": helix.to_flat(helix.lengths),
+        "root_positions": helix.root_positions,
+        "root_frames": helix.root_frames,
+        "curvatures": helix.to_flat(helix.curvatures),
+        "rest_curvatures": helix.to_flat(result.rest_curvatures),
+        "fit_max_error": result.fit_max_error,
+        "stiffness_ratio": result.stiffness_ratio if result.stiffness_ratio is not None else np.zeros(0),
+        "young_modulus": np.array(mat.young_modulus),
+        "shear_modulus": np.array(mat.G),
+        "radius": np.array(mat.radius),
+        "density": np.array(mat.density),
+        "friction": np.array(mat.friction),
+        "gravity": np.asarray(result.gravity, dtype=np.float64),
+    }
+    c = result.contacts
+    m = 0 if c is None else len(c.strand_a)
+    arrays.update({
+        "contact_strand_a": np.asarray(c.strand_a, dtype=np.int64) if m else np.zeros(0, np.int64),
+        "contact_strand_b": np.asarray(c.strand_b, dtype=np.int64) if m else np.zeros(0, np.int64),
+        "contact_s_a": np.asarray(c.s_a, dtype=np.float64) if m else np.zeros(0),
+        "contact_s_b": np.asarray(c.s_b, dtype=np.float64) if m else np.zeros(0),
+        "contact_points": np.asarray(c.point_a, dtype=np.float64) if m else np.zeros((0, 3)),
+        "contact_points_b": np.asarray(c.point_b, dtype=np.float64) if m else np.zeros((0, 3)),
+        "contact_normals": np.asarray(c.normal, dtype=np.float64) if m else np.zeros((0, 3)),
+        "contact_frames": np.asarray(c.frame, dtype=np.float64) if m else np.zeros((0, 3, 3)),
+        "contact_forces": np.asarray(result.forces, dtype=np.float64).reshape(-1, 3) if m else np.zeros((0, 3)),
+    })
+    head = result.head
+    arrays["head_vertices"] = np.asarray(head.vertices, dtype=np.float64) if head is not None else np.zeros((0, 3))
+    arrays["head_faces"] = np.asarray(head.faces, dtype=np.int64) if head is not None else np.zeros((0, 3), np.int64)
+    arrays.update(getattr(result, "extra_arrays", {}) or {})
+    return arrays
+
+
+def _json_default(obj):
+    if isinstance(obj, (np.integer,)):
+        return int(obj)
+    if isinstance(obj, (np.floating,)):
+        return float(obj)
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    return str(obj)
+
+
+def write_json(path, data: dict) -> None:
+    with atomic_open(path, "w", encoding="utf-8") as f:
+        json.dump(data, f, indent=2, default=_json_default)
+        f.write("\n")
+
+
+def write_npz(path, arrays: dict) -> None:
+    with atomic_open(path, "wb") as f:
+        np.savez_compressed(f, **arrays)
+
+
+def write_result(result, outdir, formats=("npz", "obj", "json")) -> list[Path]:
+    """Write the requested outputs into ``outdir`` (created if needed); returns the written paths."""
+    from . import save_groom
+
+    outdir = Path(outdir)
+    outdir.mkdir(parents=True, exist_ok=True)
+    written = []
+    if "npz" in formats:
+        write_npz(outdir / "rest.npz", result_arrays(result))
+        written.append(outdir / "rest.npz")
+    if "obj" in formats:
+        for name, (pts, offsets) in (("rest_shape.obj", result.rest_shape()),
+                                     ("fitted.obj", result.fitted_shape())):
+            save_groom(Groom(pts, offsets, up=result.groom.up, source=name), outdir / name)
+            written.append(outdir / name)
+    if "json" in formats:
+        write_json(outdir / "report.json", result.report)
+        written.append(outdir / "report.json")
+    return written

@@ -1,0 +1,109 @@
+"""The `groom` command line: the invert contract, error messages and exit codes."""
+
+import json
+
+import numpy as np
+import pytest
+
+from groomtool.cli.main import EXIT_NOT_CONVERGED, EXIT_OK, EXIT_USER_ERROR, main
+from groomtool.examples import write_example
+from groomtool.io import load_groom
+
+NPZ_KEYS = {"strand_offsets", "element_lengths", "root_positions", "root_frames", "curvatures",
+            "rest_curvatures", "young_modulus", "shear_modulus", "radius", "density", "gravity"}
+
+
+@pytest.fixture(scope="module")
+def example(tmp_path_factory):
+    d = tmp_path_factory.mktemp("example")
+    groom_path, head_path = write_example(d, n_strands=12, seed=3)
+    return groom_path, head_path
+
+
+def test_invert_writes_the_contract(example, tmp_path):
+    groom_path, _ = example
+    out = tmp_path / "out"
+    assert main(["invert", str(groom_path), "-o", str(out), "--quiet"]) == EXIT_OK
+    report = json.loads((out / "report.json").read_text())
+    for key in ("strands", "elements", "fit", "equilibrium", "stability", "timings_s", "input", "parameters"):
+        assert key in report
+    assert report["strands"] == 12
+    assert report["fit"]["max_error_m"] <= 5e-4
+    assert report["equilibrium"]["max_relative_residual"] < 1e-9
+    assert "total" in report["timings_s"]
+    with np.load(out / "rest.npz") as z:
+        assert NPZ_KEYS <= set(z.files)
+        offsets = z["strand_offsets"]
+        assert len(offsets) == 13 and offsets[-1] == len(z["element_lengths"]) == len(z["rest_curvatures"])
+        assert z["curvatures"].shape == z["rest_curvatures"].shape
+        # gravity pulls the rest shape away from the groomed one
+        assert np.abs(z["curvatures"] - z["rest_curvatures"]).max() > 0
+    rest = load_groom(out / "rest_shape.obj")
+    fitted = load_groom(out / "fitted.obj")
+    assert rest.n_strands == fitted.n_strands == 12
+    # the fitted curve starts at the input roots and its length agrees within twice the tolerance
+    groom = load_groom(groom_path)
+    assert np.allclose(fitted.points[fitted.offsets[:-1]], groom.points[groom.offsets[:-1]], atol=1e-9)
+    assert np.allclose(fitted.lengths(), groom.lengths(), rtol=0, atol=2 * 5e-4)
+
+
+def test_units_are_converted(example, tmp_path):
+    groom_path, _ = example
+    groom = load_groom(groom_path)
+    cm = tmp_path / "cm.obj"
+    from groomtool.io import save_groom
+
+    save_groom(groom, cm, units="cm")
+    out = tmp_path / "out"
+    assert main(["invert", str(cm), "--units", "cm", "-o", str(out), "--quiet", "--tolerance", "0.05"]) == EXIT_OK
+    report = json.loads((out / "report.json").read_text())
+    assert report["fit"]["tolerance_m"] == pytest.approx(5e-4)
+    assert report["input_units"] == "cm"
+    with np.load(out / "rest.npz") as z:
+        assert np.allclose(z["root_positions"], groom.points[groom.offsets[:-1]], atol=1e-7)
+
+
+def test_missing_input_is_a_user_error(tmp_path, capsys):
+    assert main(["invert", str(tmp_path / "nope.obj"), "-o", str(tmp_path / "o")]) == EXIT_USER_ERROR
+    err = capsys.readouterr().err
+    assert "nope.obj" in err and "Traceback" not in err
+
+
+def test_bad_material_is_a_user_error(example, tmp_path, capsys):
+    groom_path, _ = example
+    assert main(["invert", str(groom_path), "--young", "-1", "-o", str(tmp_path / "o"), "-q"]) == EXIT_USER_ERROR
+    assert "young_modulus" in capsys.readouterr().err
+
+
+def test_corrupt_data_names_file_and_strand(tmp_path, capsys):
+    bad = tmp_path / "bad.data"
+    # 2 strands declared, the second is cut short
+    payload = np.array([2, 3], "<i4").tobytes() + np.zeros(9, "<f4").tobytes() + np.array([5], "<i4").tobytes()
+    bad.write_bytes(payload + np.ones(6, "<f4").tobytes())
+    assert main(["info", str(bad)]) == EXIT_USER_ERROR
+    err = capsys.readouterr().err
+    assert "bad.data" in err and "strand 1" in err
+
+
+def test_existing_output_survives_a_failed_run(example, tmp_path, monkeypatch):
+    groom_path, _ = example
+    out = tmp_path / "out"
+    assert main(["invert", str(groom_path), "-o", str(out), "-q"]) == EXIT_OK
+    before = (out / "rest.npz").read_bytes()
+
+    import groomtool.invert as inv
+
+    def fail(*a, **k):
+        raise inv.SolverFailure("contact solver gs did not converge: status max_iter, residual 1.0e-03", "max_iter", 1e-3)
+
+    monkeypatch.setattr(inv, "invert_groom", fail)
+    assert main(["invert", str(groom_path), "-o", str(out), "-q"]) == EXIT_NOT_CONVERGED
+    assert (out / "rest.npz").read_bytes() == before
+    assert not [p for p in out.iterdir() if p.name.startswith(".")]
+
+
+def test_info_prints_counts(example, capsys):
+    groom_path, _ = example
+    assert main(["info", str(groom_path)]) == EXIT_OK
+    out = capsys.readouterr().out
+    assert "strands   12" in out and "bounds" in out
