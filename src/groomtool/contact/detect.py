@@ -1,0 +1,616 @@
+"""The ``Contacts`` record and strand/strand contact detection.
+
+Each strand segment is a capsule of radius ``r_c`` around its axis; two capsules touch when the
+axis-to-axis distance is below ``2 r_c``.  Pipeline (all numba, one core):
+
+1. broad phase: a sorted spatial hash.  Every segment's AABB, inflated by ``r_c``, is inserted in
+   every cell it overlaps; each cell's entries are swept along x and tested pairwise (AABB overlap);
+   a pair is owned by the single cell holding the lower corner of the two boxes' intersection, so
+   no pair is reported twice and no dedup pass is needed.  Pairs whose infinite lines are at least
+   ``2 r_c`` apart are rejected before the exact test.
+2. narrow phase: exact closest points between the two segments (clamped closest points; parallel,
+   collinear and zero-length segments handled) -> contact when distance < ``2 r_c``.
+3. same-strand rule: two points of one strand are neighbours, not a contact, when they are less
+   than ``min_self_arc`` apart in arc length (default ``pi r_c``: a U-turn whose two arms touch has
+   an arc of at least ``pi r_c`` between them, while points of a straight-ish strand closer than
+   that in arc length are trivially within ``2 r_c``).  For two segments of one strand the closest
+   points are sought under that constraint (exactly: a convex problem on a half-plane), so the
+   result does not depend on how finely the strand is sampled.
+4. one contact per local minimum of the polyline-to-polyline distance: the distance between two
+   segments is convex in their parameters, so a segment pair's closest point is a local minimum
+   of the distance between the two polylines unless it sits on a shared vertex where a neighbouring
+   segment pair is closer (or equally close with a lower index).  Local minima of one strand pair
+   closer than ``merge_arc`` (default ``4 r_c``) along both strands are then merged, keeping the
+   closest.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numba as nb
+import numpy as np
+
+from .frames import contact_frames
+
+HEAD = -1  #: ``strand_b`` of a strand/head contact
+DEFAULT_CONTACT_RADIUS = 50e-6  #: m: the 40 um fibre radius plus a 10 um margin (docs/contact.md)
+
+_LEN2_EPS = 1e-30  # squared length below which a segment is a point
+_PARALLEL_EPS = 1e-12  # relative (1 - cos^2) below which two segments are parallel
+
+
+# ----------------------------------------------------------------------------------------- record
+@dataclass
+class Contacts:
+    """m contacts as plain arrays.
+
+    strand_a (m,) int64; s_a (m,) arc length on strand a; strand_b (m,) int64 or ``HEAD`` (-1);
+    s_b (m,) arc length on strand b (nan for the head); point_a, point_b (m, 3) closest points on
+    the axis of a and on the axis of b / the head surface; normal (m, 3) unit, from b towards a;
+    frame (m, 3, 3) rows (e_N, e_T1, e_T2), e_N = normal; distance (m,) axis-to-axis distance, or
+    signed axis-to-surface distance for the head (negative: the axis is inside the head).
+    radius: the contact radius r_c used (m), or None.
+    """
+
+    strand_a: np.ndarray
+    s_a: np.ndarray
+    strand_b: np.ndarray
+    s_b: np.ndarray
+    point_a: np.ndarray
+    point_b: np.ndarray
+    normal: np.ndarray
+    frame: np.ndarray
+    distance: np.ndarray
+    radius: float | None = None
+
+    ARRAYS = ("strand_a", "s_a", "strand_b", "s_b", "point_a", "point_b", "normal", "frame", "distance")
+
+    def __post_init__(self) -> None:
+        self.strand_a = np.ascontiguousarray(self.strand_a, dtype=np.int64).reshape(-1)
+        m = len(self.strand_a)
+        self.strand_b = np.ascontiguousarray(self.strand_b, dtype=np.int64).reshape(m)
+        for name in ("s_a", "s_b", "distance"):
+            setattr(self, name, np.ascontiguousarray(getattr(self, name), dtype=np.float64).reshape(m))
+        for name in ("point_a", "point_b", "normal"):
+            setattr(self, name, np.ascontiguousarray(getattr(self, name), dtype=np.float64).reshape(m, 3))
+        self.frame = np.ascontiguousarray(self.frame, dtype=np.float64).reshape(m, 3, 3)
+        self.radius = None if self.radius is None else float(self.radius)
+
+    def __len__(self) -> int:
+        return len(self.strand_a)
+
+    @property
+    def is_head(self) -> np.ndarray:
+        """(m,) bool, True for strand/head contacts."""
+        return self.strand_b == HEAD
+
+    @property
+    def n_strand_strand(self) -> int:
+        return int(np.count_nonzero(~self.is_head))
+
+    @property
+    def n_strand_head(self) -> int:
+        return int(np.count_nonzero(self.is_head))
+
+    @classmethod
+    def empty(cls, radius: float | None = None) -> "Contacts":
+        z = np.zeros(0)
+        return cls(z, z, z, z, np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3, 3)), z,
+                   radius)
+
+    @classmethod
+    def concatenate(cls, parts) -> "Contacts":
+        """One record holding ``parts`` one after the other (their radii must agree, or be None)."""
+        parts = list(parts)
+        radii = {p.radius for p in parts if p.radius is not None}
+        if len(radii) > 1:
+            raise ValueError(f"cannot concatenate contacts found with different radii {sorted(radii)}")
+        radius = radii.pop() if radii else None
+        if not parts:
+            return cls.empty()
+        return cls(**{name: np.concatenate([getattr(p, name) for p in parts]) for name in cls.ARRAYS},
+                   radius=radius)
+
+    def subset(self, mask) -> "Contacts":
+        """The contacts selected by a boolean mask or an index array."""
+        return Contacts(**{name: getattr(self, name)[mask] for name in self.ARRAYS}, radius=self.radius)
+
+    def __repr__(self) -> str:
+        return f"Contacts({len(self)}: {self.n_strand_strand} strand/strand, {self.n_strand_head} strand/head)"
+
+
+# ------------------------------------------------------------------------------ input checking
+def check_strands(points, offsets, arc) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Validate and convert the ragged strand arrays (points (V,3), offsets (S+1,), arc (V,))."""
+    points = np.ascontiguousarray(points, dtype=np.float64)
+    offsets = np.ascontiguousarray(offsets, dtype=np.int64)
+    arc = np.ascontiguousarray(arc, dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise ValueError(f"points must be (V, 3), got {points.shape}")
+    if offsets.ndim != 1 or offsets.size < 1 or offsets[0] != 0 or offsets[-1] != len(points):
+        raise ValueError("offsets must be (S + 1,), start at 0 and end at len(points)")
+    if np.any(np.diff(offsets) < 0):
+        raise ValueError("offsets must be non-decreasing")
+    if arc.shape != (len(points),):
+        raise ValueError(f"arc must be ({len(points)},), got {arc.shape}")
+    if not (np.all(np.isfinite(points)) and np.all(np.isfinite(arc))):
+        raise ValueError("points and arc must be finite")
+    step = np.diff(arc)
+    within = np.ones(len(step), dtype=bool)
+    within[offsets[1:-1][(offsets[1:-1] > 0) & (offsets[1:-1] < len(points))] - 1] = False
+    if np.any(step[within] < 0.0):
+        raise ValueError("arc must be non-decreasing along every strand")
+    return points, offsets, arc
+
+
+def strand_segments(offsets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Start vertex (n_seg,) and strand id (n_seg,) of every segment, strand after strand."""
+    counts = np.diff(offsets)
+    n_seg = np.maximum(counts - 1, 0)
+    seg_strand = np.repeat(np.arange(len(counts), dtype=np.int64), n_seg)
+    first_seg = np.concatenate([[0], np.cumsum(n_seg)])[:-1]
+    v0 = np.arange(len(seg_strand), dtype=np.int64) - np.repeat(first_seg, n_seg) + np.repeat(offsets[:-1], n_seg)
+    return v0, seg_strand
+
+
+# --------------------------------------------------------------------- segment/segment distance
+@nb.njit(cache=True)
+def _segment_params(p0x, p0y, p0z, p1x, p1y, p1z, q0x, q0y, q0z, q1x, q1y, q1z):
+    """Parameters (s, t) in [0, 1] of the closest points of [p0, p1] and [q0, q1] (Ericson 5.1.9)."""
+    d1x, d1y, d1z = p1x - p0x, p1y - p0y, p1z - p0z
+    d2x, d2y, d2z = q1x - q0x, q1y - q0y, q1z - q0z
+    rx, ry, rz = p0x - q0x, p0y - q0y, p0z - q0z
+    a = d1x * d1x + d1y * d1y + d1z * d1z
+    e = d2x * d2x + d2y * d2y + d2z * d2z
+    f = d2x * rx + d2y * ry + d2z * rz
+    if a <= _LEN2_EPS and e <= _LEN2_EPS:
+        return 0.0, 0.0
+    if a <= _LEN2_EPS:
+        return 0.0, min(max(f / e, 0.0), 1.0)
+    c = d1x * rx + d1y * ry + d1z * rz
+    if e <= _LEN2_EPS:
+        return min(max(-c / a, 0.0), 1.0), 0.0
+    b = d1x * d2x + d1y * d2y + d1z * d2z
+    denom = a * e - b * b
+    s = 0.0
+    if denom > _PARALLEL_EPS * a * e:
+        s = min(max((b * f - c * e) / denom, 0.0), 1.0)
+    t = (b * s + f) / e
+    if t < 0.0:
+        t = 0.0
+        s = min(max(-c / a, 0.0), 1.0)
+    elif t > 1.0:
+        t = 1.0
+        s = min(max((b - c) / a, 0.0), 1.0)
+    return s, t
+
+
+@nb.njit(cache=True)
+def _segment_closest_points_kernel(p0, p1, q0, q1):
+    n = p0.shape[0]
+    s = np.empty(n)
+    t = np.empty(n)
+    for k in range(n):
+        s[k], t[k] = _segment_params(p0[k, 0], p0[k, 1], p0[k, 2], p1[k, 0], p1[k, 1], p1[k, 2],
+                                     q0[k, 0], q0[k, 1], q0[k, 2], q1[k, 0], q1[k, 1], q1[k, 2])
+    return s, t
+
+
+def segment_closest_points(p0, p1, q0, q1):
+    """Closest points between segments [p0, p1] and [q0, q1], all (n, 3).
+
+    Returns (s, t, c1, c2, distance): parameters in [0, 1], points c1 = p0 + s (p1 - p0) and
+    c2 = q0 + t (q1 - q0), and |c1 - c2|.  Parallel and zero-length segments give one of the
+    minimisers, chosen deterministically.
+    """
+    p0, p1, q0, q1 = (np.ascontiguousarray(np.reshape(x, (-1, 3)), dtype=np.float64) for x in (p0, p1, q0, q1))
+    s, t = _segment_closest_points_kernel(p0, p1, q0, q1)
+    c1 = p0 + s[:, None] * (p1 - p0)
+    c2 = q0 + t[:, None] * (q1 - q0)
+    return s, t, c1, c2, np.linalg.norm(c1 - c2, axis=1)
+
+
+# ------------------------------------------------------------------------------- broad phase
+@nb.njit(cache=True)
+def _cell_entries(lo, hi, origin, h, nx, ny):
+    """(cell key, segment) for every cell overlapped by every box."""
+    n = lo.shape[0]
+    rng = np.empty((n, 6), np.int64)
+    total = 0
+    for i in range(n):
+        cnt = 1
+        for k in range(3):
+            a = np.int64(np.floor((lo[i, k] - origin[k]) / h))
+            b = np.int64(np.floor((hi[i, k] - origin[k]) / h))
+            rng[i, k] = a
+            rng[i, 3 + k] = b
+            cnt *= b - a + 1
+        total += cnt
+    keys = np.empty(total, np.int64)
+    ids = np.empty(total, np.int64)
+    m = 0
+    for i in range(n):
+        for iz in range(rng[i, 2], rng[i, 5] + 1):
+            for iy in range(rng[i, 1], rng[i, 4] + 1):
+                for ix in range(rng[i, 0], rng[i, 3] + 1):
+                    keys[m] = ix + nx * (iy + ny * iz)
+                    ids[m] = i
+                    m += 1
+    return keys, ids
+
+
+@nb.njit(cache=True)
+def _grow(arr, n):
+    out = np.empty(max(2 * arr.shape[0], n), arr.dtype)
+    out[: arr.shape[0]] = arr
+    return out
+
+
+@nb.njit(cache=True)
+def _self_params(points, arc, u, w, s, t, min_arc):
+    """Closest points of two segments of one strand (u before w) under the constraint
+    s_b - s_a >= min_arc on their arc lengths; returns (s, t, feasible).
+
+    The distance is convex on the parameter square and the constraint a half-plane, so when the
+    free minimiser (s, t) violates it the constrained one lies on the line s_b - s_a = min_arc.
+    """
+    a0, la = arc[u], arc[u + 1] - arc[u]
+    b0, lb = arc[w], arc[w + 1] - arc[w]
+    if (b0 + t * lb) - (a0 + s * la) >= min_arc:
+        return s, t, True
+    if lb <= 0.0:  # t does not move s_b: the constraint is s <= s_max, a sub-rectangle
+        if la <= 0.0:
+            return s, t, False
+        s_max = (b0 - a0 - min_arc) / la
+        if s_max < 0.0:
+            return s, t, False
+        s_max = min(s_max, 1.0)
+        s, t = _segment_params(points[u, 0], points[u, 1], points[u, 2],
+                               points[u, 0] + s_max * (points[u + 1, 0] - points[u, 0]),
+                               points[u, 1] + s_max * (points[u + 1, 1] - points[u, 1]),
+                               points[u, 2] + s_max * (points[u + 1, 2] - points[u, 2]),
+                               points[w, 0], points[w, 1], points[w, 2],
+                               points[w + 1, 0], points[w + 1, 1], points[w + 1, 2])
+        return s * s_max, t, True
+    alpha = (min_arc + a0 - b0) / lb  # on the line: t = alpha + beta s
+    beta = la / lb
+    s_lo, s_hi = 0.0, 1.0
+    if beta > 0.0:
+        s_lo = max(0.0, -alpha / beta)
+        s_hi = min(1.0, (1.0 - alpha) / beta)
+    elif alpha < 0.0 or alpha > 1.0:
+        return s, t, False
+    if s_lo > s_hi:
+        return s, t, False
+    # |r0 + s q|^2 along the line, r0 = p0 - q0 - alpha d2, q = d1 - beta d2
+    rq = 0.0
+    qq = 0.0
+    for k in range(3):
+        d1 = points[u + 1, k] - points[u, k]
+        d2 = points[w + 1, k] - points[w, k]
+        r0 = points[u, k] - points[w, k] - alpha * d2
+        q = d1 - beta * d2
+        rq += r0 * q
+        qq += q * q
+    s_new = s_lo if qq <= 0.0 else min(max(-rq / qq, s_lo), s_hi)
+    t_new = min(max(alpha + beta * s_new, 0.0), 1.0)
+    if t_new < 1e-12:
+        t_new = 0.0
+    elif t_new > 1.0 - 1e-12:
+        t_new = 1.0
+    return s_new, t_new, True
+
+
+@nb.njit(cache=True)
+def _close_pairs_kernel(keys, ids, lo, hi, origin, h, nx, ny, points, arc, seg_v0, seg_strand,
+                        two_rc, min_self_arc):
+    """Exact close segment pairs from the cell entries sorted by (cell key, box lower x).
+
+    Returns (n_box_pairs, n_candidates, i, j, s, t, d).  Boxes are gathered in entry order so the
+    sweep along x inside each cell reads memory linearly.  Candidates: pairs whose inflated boxes
+    overlap and whose infinite lines are closer than 2 r_c; they get the exact segment test.
+    """
+    n = keys.shape[0]
+    elo = np.empty((3, n))
+    ehi = np.empty((3, n))
+    geo = np.empty((7, n))  # per entry: segment midpoint, direction, squared length
+    for x in range(n):
+        v = seg_v0[ids[x]]
+        geo[6, x] = 0.0
+        for k in range(3):
+            elo[k, x] = lo[ids[x], k]
+            ehi[k, x] = hi[ids[x], k]
+            geo[k, x] = 0.5 * (points[v, k] + points[v + 1, k])
+            geo[3 + k, x] = points[v + 1, k] - points[v, k]
+            geo[6, x] += geo[3 + k, x] ** 2
+    two_rc2 = two_rc * two_rc
+    cap = 1024
+    out_i = np.empty(cap, np.int64)
+    out_j = np.empty(cap, np.int64)
+    out_s = np.empty(cap)
+    out_t = np.empty(cap)
+    out_d = np.empty(cap)
+    n_out = 0
+    n_box = 0
+    n_cand = 0
+    start = 0
+    while start < n:
+        key = keys[start]
+        end = start + 1
+        while end < n and keys[end] == key:
+            end += 1
+        cz = key // (nx * ny)
+        rem = key - cz * nx * ny
+        cy = rem // nx
+        cx = rem - cy * nx
+        for x in range(start, end):
+            a = ids[x]
+            ax1, ay0, ay1, az0, az1 = ehi[0, x], elo[1, x], ehi[1, x], elo[2, x], ehi[2, x]
+            for y in range(x + 1, end):
+                if elo[0, y] > ax1:
+                    break  # sorted by lower x: no later box overlaps along x
+                if elo[1, y] > ay1 or ay0 > ehi[1, y] or elo[2, y] > az1 or az0 > ehi[2, y]:
+                    continue
+                # the pair belongs to the cell holding the lower corner of the boxes' intersection
+                # (elo[0, y] >= elo[0, x] after the sort)
+                if np.int64(np.floor((elo[0, y] - origin[0]) / h)) != cx:
+                    continue
+                if np.int64(np.floor((max(ay0, elo[1, y]) - origin[1]) / h)) != cy:
+                    continue
+                if np.int64(np.floor((max(az0, elo[2, y]) - origin[2]) / h)) != cz:
+                    continue
+                n_box += 1
+                # the infinite lines are no farther apart than the segments: reject when they are
+                # at least 2 r_c apart (only where the lines are not nearly parallel)
+                cx_ = geo[4, x] * geo[5, y] - geo[5, x] * geo[4, y]
+                cy_ = geo[5, x] * geo[3, y] - geo[3, x] * geo[5, y]
+                cz_ = geo[3, x] * geo[4, y] - geo[4, x] * geo[3, y]
+                cc = cx_ * cx_ + cy_ * cy_ + cz_ * cz_
+                if cc > 1e-8 * geo[6, x] * geo[6, y]:
+                    rc_ = ((geo[0, x] - geo[0, y]) * cx_ + (geo[1, x] - geo[1, y]) * cy_
+                           + (geo[2, x] - geo[2, y]) * cz_)
+                    if rc_ * rc_ >= two_rc2 * cc:
+                        continue
+                b = ids[y]
+                i = min(a, b)
+                j = max(a, b)
+                n_cand += 1
+                u = seg_v0[i]
+                w = seg_v0[j]
+                s, t = _segment_params(points[u, 0], points[u, 1], points[u, 2],
+                                       points[u + 1, 0], points[u + 1, 1], points[u + 1, 2],
+                                       points[w, 0], points[w, 1], points[w, 2],
+                                       points[w + 1, 0], points[w + 1, 1], points[w + 1, 2])
+                if seg_strand[i] == seg_strand[j]:
+                    s, t, feasible = _self_params(points, arc, u, w, s, t, min_self_arc)
+                    if not feasible:
+                        continue
+                d2 = 0.0
+                for k in range(3):
+                    ca = points[u, k] + s * (points[u + 1, k] - points[u, k])
+                    cb = points[w, k] + t * (points[w + 1, k] - points[w, k])
+                    d2 += (ca - cb) * (ca - cb)
+                d = np.sqrt(d2)
+                if d >= two_rc:
+                    continue
+                if n_out == out_i.shape[0]:
+                    out_i = _grow(out_i, n_out + 1)
+                    out_j = _grow(out_j, n_out + 1)
+                    out_s = _grow(out_s, n_out + 1)
+                    out_t = _grow(out_t, n_out + 1)
+                    out_d = _grow(out_d, n_out + 1)
+                out_i[n_out] = i
+                out_j[n_out] = j
+                out_s[n_out] = s
+                out_t[n_out] = t
+                out_d[n_out] = d
+                n_out += 1
+        start = end
+    return n_box, n_cand, out_i[:n_out], out_j[:n_out], out_s[:n_out], out_t[:n_out], out_d[:n_out]
+
+
+@dataclass
+class SegmentPairs:
+    """Close segment pairs (global segment ids i < j) with their closest-point parameters and distance."""
+
+    i: np.ndarray
+    j: np.ndarray
+    s: np.ndarray
+    t: np.ndarray
+    distance: np.ndarray
+    n_candidates: int  #: segment pairs whose inflated boxes overlap and lines are closer than 2 r_c
+    n_box_pairs: int = 0  #: segment pairs whose inflated boxes overlap
+
+
+def default_cell_size(points, seg_v0, radius: float) -> float:
+    """Hash cell edge: the mean segment length plus the contact diameter."""
+    if len(seg_v0) == 0:
+        return 1.0
+    mean_len = float(np.mean(np.linalg.norm(points[seg_v0 + 1] - points[seg_v0], axis=1)))
+    return mean_len + 2.0 * radius
+
+
+def close_segment_pairs(points, offsets, arc, radius: float, *, min_self_arc: float | None = None,
+                        cell_size: float | None = None) -> SegmentPairs:
+    """All segment pairs whose axes are closer than ``2 * radius`` (same-strand rule applied)."""
+    points, offsets, arc = check_strands(points, offsets, arc)
+    if not radius > 0:
+        raise ValueError(f"contact radius must be positive, got {radius}")
+    if min_self_arc is None:
+        min_self_arc = np.pi * radius
+    seg_v0, seg_strand = strand_segments(offsets)
+    if len(seg_v0) < 2:
+        e = np.zeros(0)
+        return SegmentPairs(e.astype(np.int64), e.astype(np.int64), e, e, e, 0)
+    h = float(cell_size) if cell_size is not None else default_cell_size(points, seg_v0, radius)
+    p0, p1 = points[seg_v0], points[seg_v0 + 1]
+    lo = np.minimum(p0, p1) - radius
+    hi = np.maximum(p0, p1) + radius
+    origin = lo.min(axis=0)
+    dims = np.floor((hi.max(axis=0) - origin) / h).astype(np.int64) + 1
+    if float(np.prod(dims.astype(np.float64))) > 2.0**62:
+        raise ValueError(f"hash cell size {h} is too small for the extent of the strands")
+    keys, ids = _cell_entries(lo, hi, origin, h, dims[0], dims[1])
+    order = np.lexsort((ids, lo[ids, 0], keys))
+    n_box, n_cand, i, j, s, t, d = _close_pairs_kernel(
+        keys[order], ids[order], lo, hi, origin, h, dims[0], dims[1], points, arc, seg_v0, seg_strand,
+        2.0 * radius, float(min_self_arc))
+    return SegmentPairs(i, j, s, t, d, int(n_cand), int(n_box))
+
+
+# ------------------------------------------------------------------------------ deduplication
+@nb.njit(cache=True)
+def _local_minima_kernel(pi, pj, ps, pt, pd, seg_strand, tol):
+    """Keep pairs whose closest point is a local minimum of the polyline/polyline distance."""
+    m = pi.shape[0]
+    n_seg = seg_strand.shape[0]
+    keys = pi * n_seg + pj
+    order = np.argsort(keys)
+    sorted_keys = keys[order]
+    keep = np.ones(m, np.bool_)
+    ni = np.empty(2, np.int64)
+    nj = np.empty(2, np.int64)
+    for k in range(m):
+        i, j = pi[k], pj[k]
+        if 0.0 < ps[k] < 1.0 and 0.0 < pt[k] < 1.0:
+            continue
+        # segments sharing the closest point (vertex) with i, and with j
+        ni[0] = i
+        ci = 1
+        if ps[k] == 0.0 and i > 0 and seg_strand[i - 1] == seg_strand[i]:
+            ni[1] = i - 1
+            ci = 2
+        elif ps[k] == 1.0 and i + 1 < n_seg and seg_strand[i + 1] == seg_strand[i]:
+            ni[1] = i + 1
+            ci = 2
+        nj[0] = j
+        cj = 1
+        if pt[k] == 0.0 and j > 0 and seg_strand[j - 1] == seg_strand[j]:
+            nj[1] = j - 1
+            cj = 2
+        elif pt[k] == 1.0 and j + 1 < n_seg and seg_strand[j + 1] == seg_strand[j]:
+            nj[1] = j + 1
+            cj = 2
+        for x in range(ci):
+            for y in range(cj):
+                if x == 0 and y == 0:
+                    continue
+                a = min(ni[x], nj[y])
+                b = max(ni[x], nj[y])
+                if a == b:
+                    continue
+                other = a * n_seg + b
+                pos = np.searchsorted(sorted_keys, other)
+                if pos < m and sorted_keys[pos] == other:
+                    d_other = pd[order[pos]]
+                    if d_other < pd[k] - tol or (d_other <= pd[k] + tol and other < keys[k]):
+                        keep[k] = False
+    return keep
+
+
+@nb.njit(cache=True)
+def _merge_kernel(group_a, group_b, s_a, s_b, dist, merge_arc):
+    """Greedy: in each (group_a, group_b) run, sorted by distance, drop contacts within merge_arc
+    of an already kept one along both strands."""
+    m = group_a.shape[0]
+    keep = np.zeros(m, np.bool_)
+    start = 0
+    while start < m:
+        end = start + 1
+        while end < m and group_a[end] == group_a[start] and group_b[end] == group_b[start]:
+            end += 1
+        for k in range(start, end):
+            ok = True
+            for q in range(start, k):
+                if keep[q] and abs(s_a[q] - s_a[k]) < merge_arc and abs(s_b[q] - s_b[k]) < merge_arc:
+                    ok = False
+                    break
+            keep[k] = ok
+        start = end
+    return keep
+
+
+def merge_close(strand_a, strand_b, s_a, s_b, distance, merge_arc: float) -> np.ndarray:
+    """Indices of the contacts kept after merging, per strand pair, those closer than ``merge_arc``
+    along both strands (the closest wins; ties by input order)."""
+    order = np.lexsort((np.arange(len(distance)), distance, strand_b, strand_a))
+    keep = _merge_kernel(strand_a[order], strand_b[order], s_a[order], np.nan_to_num(s_b[order]),
+                         distance[order], float(merge_arc))
+    return np.sort(order[keep])
+
+
+# ---------------------------------------------------------------------------------- normals
+def _fallback_normals(dir_a: np.ndarray, dir_b: np.ndarray) -> np.ndarray:
+    """A unit normal when the two axes touch: orthogonal to both directions (or to dir_a)."""
+    n = np.cross(dir_a, dir_b)
+    bad = np.linalg.norm(n, axis=1) <= 1e-12 * np.maximum(
+        np.linalg.norm(dir_a, axis=1) * np.linalg.norm(dir_b, axis=1), 1e-300)
+    if np.any(bad):
+        axis = np.eye(3)[np.argmin(np.abs(dir_a[bad]), axis=1)]
+        n[bad] = np.cross(dir_a[bad], axis)
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    # deterministic sign: the largest component positive
+    big = np.take_along_axis(n, np.argmax(np.abs(n), axis=1)[:, None], axis=1)
+    return n * np.where(big < 0.0, -1.0, 1.0)
+
+
+def pair_normals(point_a, point_b, dir_a, dir_b, distance) -> np.ndarray:
+    """Unit normals from b to a; when the axes touch (distance ~ 0), orthogonal to both axes."""
+    scale = 1.0 + np.max(np.abs(point_a), axis=1) if len(point_a) else np.ones(0)
+    tiny = distance <= 1e-12 * scale
+    normal = np.empty_like(point_a)
+    ok = ~tiny
+    normal[ok] = (point_a[ok] - point_b[ok]) / distance[ok, None]
+    if np.any(tiny):
+        normal[tiny] = _fallback_normals(dir_a[tiny], dir_b[tiny])
+    return normal
+
+
+# ---------------------------------------------------------------------------- public detection
+def detect_strand_contacts(points, offsets, arc, radius: float, *, min_self_arc: float | None = None,
+                           merge_arc: float | None = None, cell_size: float | None = None,
+                           stats: dict | None = None) -> Contacts:
+    """Strand/strand contacts between capsules of radius ``radius`` around the strand polylines.
+
+    points (V, 3), offsets (S + 1,), arc (V,): the sampled strands and the arc-length parameter of
+    each vertex (s on a segment is interpolated linearly).  ``min_self_arc`` (default pi r_c):
+    same-strand pairs closer than this in arc length are neighbours, not contacts.  ``merge_arc``
+    (default 4 r_c): local minima of one strand pair closer than this along both strands are merged.
+    ``stats``, if given, receives counts (candidates, close pairs, local minima, contacts).
+    Contacts are ordered by (strand_a, s_a, strand_b, s_b); strand_a <= strand_b, and s_a < s_b
+    for self-contacts.
+    """
+    points, offsets, arc = check_strands(points, offsets, arc)
+    merge_arc = 4.0 * radius if merge_arc is None else float(merge_arc)
+    t0 = time.perf_counter()
+    pairs = close_segment_pairs(points, offsets, arc, radius, min_self_arc=min_self_arc, cell_size=cell_size)
+    seg_v0, seg_strand = strand_segments(offsets)
+    t1 = time.perf_counter()
+
+    keep = _local_minima_kernel(pairs.i, pairs.j, pairs.s, pairs.t, pairs.distance, seg_strand, 1e-9 * radius)
+    i, j, s, t, d = (x[keep] for x in (pairs.i, pairs.j, pairs.s, pairs.t, pairs.distance))
+    va, vb = seg_v0[i], seg_v0[j]
+    s_a = arc[va] + s * (arc[va + 1] - arc[va])
+    s_b = arc[vb] + t * (arc[vb + 1] - arc[vb])
+    strand_a, strand_b = seg_strand[i], seg_strand[j]
+    kept = merge_close(strand_a, strand_b, s_a, s_b, d, merge_arc)
+    t2 = time.perf_counter()
+
+    n_minima = len(d)
+    kept = kept[np.lexsort((s_b[kept], strand_b[kept], s_a[kept], strand_a[kept]))]
+    strand_a, strand_b, s_a, s_b, s, t, d, va, vb = (
+        x[kept] for x in (strand_a, strand_b, s_a, s_b, s, t, d, va, vb))
+    dir_a = points[va + 1] - points[va]
+    dir_b = points[vb + 1] - points[vb]
+    point_a = points[va] + s[:, None] * dir_a
+    point_b = points[vb] + t[:, None] * dir_b
+    normal = pair_normals(point_a, point_b, dir_a, dir_b, d)
+    frame = contact_frames(normal, dir_a) if len(d) else np.zeros((0, 3, 3))
+    if stats is not None:
+        stats.update(segments=len(seg_v0), box_pairs=pairs.n_box_pairs, candidates=pairs.n_candidates,
+                     close_pairs=len(pairs.i), local_minima=n_minima, strand_contacts=len(kept),
+                     time_strand_pairs=t1 - t0,
+                     time_strand_dedup=t2 - t1, time_strand_frames=time.perf_counter() - t2)
+    return Contacts(strand_a, s_a, strand_b, s_b, point_a, point_b, normal, frame, d, radius)
