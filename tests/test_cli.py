@@ -91,7 +91,9 @@ def test_existing_output_survives_a_failed_run(example, tmp_path, monkeypatch):
     assert main(["invert", str(groom_path), "-o", str(out), "-q"]) == EXIT_OK
     before = (out / "rest.npz").read_bytes()
 
-    import groomtool.invert as inv
+    import sys
+
+    inv = sys.modules["groomtool.invert"]
 
     def fail(*a, **k):
         raise inv.SolverFailure("contact solver gs did not converge: status max_iter, residual 1.0e-03", "max_iter", 1e-3)

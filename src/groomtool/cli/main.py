@@ -12,7 +12,17 @@ from pathlib import Path
 
 import numpy as np
 
+from . import export_cmd, view_cmd
+
 EXIT_OK, EXIT_USER_ERROR, EXIT_NOT_CONVERGED = 0, 1, 2
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse that exits with 1 (user error) on a bad option, keeping 2 for "did not converge"."""
+
+    def error(self, message):
+        self.print_usage(sys.stderr)
+        self.exit(EXIT_USER_ERROR, f"{self.prog}: error: {message}\n")
 
 EPILOG_INVERT = """examples:
   groom invert strands.obj --head head.obj -o out --contacts all
@@ -46,7 +56,7 @@ def _add_material_options(p: argparse.ArgumentParser) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="groom", description="Hair grooming and inversion: rest curvatures that make a groom an equilibrium.")
     sub = parser.add_subparsers(dest="command", required=True)
 
@@ -75,18 +85,24 @@ def build_parser() -> argparse.ArgumentParser:
     inv.add_argument("--rod-segments", type=int, default=None, metavar="N",
                      help="resolution of the discrete (Cosserat/DER) rest data: N equal segments per strand "
                           "(default: the input's own vertices)")
-    inv.add_argument("--format", action="append", choices=["npz", "obj", "json"], default=None,
+    inv.add_argument("--format", action="append", choices=["npz", "obj", "json", "usd", "vtp", "hair"], default=None,
                      help="output formats (repeatable; default npz, obj, json)")
     _add_material_options(inv)
     inv.add_argument("-q", "--quiet", action="store_true", help="no progress bars and no summary")
 
-    ex = sub.add_parser("example", help="write the bundled example groom (example.obj) and head (head.obj)")
+    ex = sub.add_parser("example", help="write the bundled example groom (example.obj) and head (head.obj)",
+                        epilog="example:\n  groom example ex && groom invert ex/example.obj --head ex/head.obj",
+                        formatter_class=argparse.RawDescriptionHelpFormatter)
     ex.add_argument("directory", nargs="?", default="example", help="where to write them (default ./example)")
     ex.add_argument("--strands", type=int, default=200, help="number of strands (default 200)")
 
-    info = sub.add_parser("info", help="print strand and vertex counts, lengths and bounding box")
+    info = sub.add_parser("info", help="print strand and vertex counts, lengths and bounding box",
+                          epilog="example:\n  groom info harolongo.data --units cm",
+                          formatter_class=argparse.RawDescriptionHelpFormatter)
     info.add_argument("input")
     _add_input_options(info)
+    view_cmd.add_parser(sub)
+    export_cmd.add_parser(sub)
     return parser
 
 
@@ -139,6 +155,9 @@ def cmd_invert(args) -> int:
     result.report["input_units"] = args.units
     formats = tuple(args.format) if args.format else ("npz", "obj", "json")
     written = result.save(args.output, formats=formats)
+    extra = [f for f in formats if f in ("usd", "vtp", "hair")]
+    if extra:
+        written += export_cmd.export_formats(result, args.output, extra)
     if not args.quiet:
         print(summary(result, written))
     return EXIT_OK
@@ -193,7 +212,8 @@ def cmd_example(args) -> int:
     return EXIT_OK
 
 
-COMMANDS = {"invert": cmd_invert, "info": cmd_info, "example": cmd_example}
+COMMANDS = {"invert": cmd_invert, "info": cmd_info, "example": cmd_example,
+            "view": view_cmd.cmd_view, "export": export_cmd.cmd_export}
 
 
 def main(argv=None) -> int:

@@ -1,0 +1,145 @@
+"""The Python API: load a groom and a head, invert, export.  Tutorial: docs/tutorial.md.
+
+    >>> import groomtool
+    >>> groom = groomtool.load("strands.obj", units="cm")            # doctest: +SKIP
+    >>> head = groomtool.load_head("head.obj", units="cm")           # doctest: +SKIP
+    >>> result = groomtool.invert(groom, head, contacts="all", young_modulus=2.5e9)  # doctest: +SKIP
+    >>> result.save("out")                                          # doctest: +SKIP
+    >>> groomtool.export(result, "out/groom.usdc")                  # doctest: +SKIP
+
+Everything is SI inside (metres, pascals, kilograms per cubic metre); ``units`` only states the
+unit of the files read.  The forward simulator is ``groomtool.simulate`` (its own module).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+from .groom import Groom
+from .invert import InversionParams, InversionResult, invert_groom
+from .material import Material
+
+MATERIAL_FIELDS = tuple(f.name for f in dataclasses.fields(Material))
+PARAM_FIELDS = tuple(f.name for f in dataclasses.fields(InversionParams) if f.name != "material")
+EXPORT_SUFFIXES = (".usd", ".usda", ".usdc", ".usdz", ".vtp", ".obj", ".hair", ".data")
+
+
+def load(path, units="m", up: str = "y", repair: bool = False, strand_length=None) -> Groom:
+    """Read a groom file (.obj, .ply, .data, .hair, .usd/.usda/.usdc/.usdz) into metres.
+
+    units: "m", "cm", "mm" or metres per file unit; up: "y" or "z" (USD files carry their own
+    metersPerUnit and upAxis, which win); repair: drop repeated points and strands of fewer than 2
+    vertices instead of failing; strand_length: vertices per strand for OBJ/PLY without lines.
+    """
+    from .io import load_groom
+
+    return load_groom(path, units=units, up=up, repair=repair, strand_length=strand_length)
+
+
+def load_head(path, units="m"):
+    """Read a head mesh (.obj, .ply, .stl, ...) as a ``trimesh.Trimesh`` in metres."""
+    from .io import load_head as _load_head
+
+    return _load_head(path, units=units)
+
+
+def inversion_params(**params) -> InversionParams:
+    """``InversionParams`` from keyword arguments: its own fields (tolerance, contacts, guess, gamma,
+    solver, ...) and the material's (young_modulus, shear_modulus, radius, density, friction,
+    gravity), or ``material=Material(...)``.  Unknown names raise TypeError."""
+    unknown = sorted(set(params) - set(MATERIAL_FIELDS) - set(PARAM_FIELDS) - {"material"})
+    if unknown:
+        raise TypeError(f"unknown parameter(s) {', '.join(unknown)}; material: {', '.join(MATERIAL_FIELDS)}; "
+                        f"inversion: {', '.join(PARAM_FIELDS)}")
+    material_kw = {k: params.pop(k) for k in MATERIAL_FIELDS if k in params}
+    material = params.pop("material", None) or Material()
+    if material_kw:
+        material = dataclasses.replace(material, **material_kw)
+    return InversionParams(material=material, **params)
+
+
+def invert(groom, head=None, *, units="m", quiet: bool = True, **params) -> InversionResult:
+    """Rest curvatures that make ``groom`` an equilibrium under gravity (and contact).
+
+    groom: a ``Groom`` or a file path (read with ``units``); head: a trimesh, a mesh path or None.
+    params: see :func:`inversion_params`, e.g. ``contacts="all", young_modulus=2.5e9, radius=35e-6``.
+    Returns an ``InversionResult``: ``.rest_curvatures`` (S, N, 3) 1/m, ``.rest_shape()``,
+    ``.contacts``, ``.forces``, ``.report`` and ``.save(outdir, formats=("npz", "obj", "json"))``.
+    Raises ``groomtool.invert.SolverFailure`` when the contact solver does not converge.
+    """
+    if isinstance(groom, (str, Path)):
+        groom = load(groom, units=units)
+    if isinstance(head, (str, Path)):
+        head = load_head(head, units=units)
+    return invert_groom(groom, head=head, params=inversion_params(**params), quiet=quiet)
+
+
+def export(result, path, shape: str = "rest", per_element: int = 8) -> Path:
+    """Write a result (``InversionResult``, output directory or its rest.npz) by extension.
+
+    .usd/.usda/.usdc/.usdz: the groom with rest data (docs/usd.md); .vtp: strands with their fields
+    (``shape`` "fitted" or "rest"); .obj/.hair/.data: the ``shape`` polylines ("rest" or "fitted"),
+    sampled ``per_element`` times per helix element.  Returns the path.
+    """
+    from .groom import GroomError
+
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix not in EXPORT_SUFFIXES:
+        raise GroomError(f"{path}: cannot export {suffix!r}; use one of {', '.join(EXPORT_SUFFIXES)}")
+    if shape not in ("rest", "fitted"):
+        raise GroomError(f"shape must be 'rest' or 'fitted', got {shape!r}")
+    if suffix.startswith(".usd"):
+        from .io.usd import write_usd
+
+        return write_usd(result, path, per_element=per_element)
+    if suffix == ".vtp":
+        from .io.vtp import write_vtp
+
+        return write_vtp(result, path, per_element=per_element, shape=shape)
+    from .io import save_groom
+    from .viz import fields
+
+    arrays = fields.load_arrays(result)
+    samples = fields.sample(arrays, per_element)
+    points = samples.rest_points if shape == "rest" else samples.points
+    groom = Groom(points, samples.offsets, up=fields.up_axis(arrays), source=f"{shape} shape")
+    return save_groom(groom, path)
+
+
+def simulate(result, seconds: float = 1.0, **options):
+    """Simulate a result forward from its groomed state (a thin wrapper of ``groomtool.simulate.simulate``).
+
+    result: an ``InversionResult``, an output directory or its rest.npz (helices, rest curvatures,
+    material, gravity and head are taken from it).  options: those of ``groomtool.simulate.simulate``
+    (dt, contacts, frames_per_second, params, ...).  Returns its ``SimulationResult``.
+    """
+    from .simulate import simulate as _simulate
+
+    if isinstance(result, InversionResult):
+        helix, rest, material, gravity, head = (result.helix, result.rest_curvatures, result.material,
+                                                result.gravity, result.head)
+    else:
+        helix, rest, material, gravity, head = _simulation_inputs(result)
+    options.setdefault("head", head)
+    return _simulate(helix, rest, material, gravity, seconds=seconds, **options)
+
+
+def _simulation_inputs(source):
+    """(helix, rest curvatures (S, N, 3), material, gravity, head trimesh or None) of a saved result."""
+    import numpy as np
+
+    from .viz import fields
+
+    arrays = fields.load_arrays(source)
+    gravity = np.asarray(arrays["gravity"], dtype=np.float64)
+    material = Material(**{k: float(arrays[k]) for k in ("young_modulus", "radius", "density", "friction",
+                                                         "shear_modulus")}, gravity=float(np.linalg.norm(gravity)))
+    head = None
+    mesh = fields.head_mesh(arrays)
+    if mesh is not None:
+        import trimesh
+
+        head = trimesh.Trimesh(mesh[0], mesh[1], process=False)
+    return fields.helix(arrays), fields.helix(arrays, rest=True).curvatures, material, gravity, head
