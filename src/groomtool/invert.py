@@ -69,10 +69,17 @@ class InversionParams:
 
 def isolated_rest_curvatures(helix: sh.SuperHelix, material: Material, gravity, kin=None) -> np.ndarray:
     """q0 = q - K^-1 F(q), (S, N, 3); padding stays 0."""
-    F = sh.gravity_force(helix, material.linear_density, gravity, kin)
+    F = gravity_force(helix, material, gravity, kin)
     K = sh.stiffness(helix, material.stiffness_diag)
     q0 = helix.curvatures - np.divide(F, K, out=np.zeros_like(F), where=K > 0)
     return q0
+
+
+def gravity_force(helix: sh.SuperHelix, material: Material, gravity, kin=None) -> np.ndarray:
+    """F(q) (S, N, 3): with ``kin`` given, from it; else in chunks of strands of similar length."""
+    if kin is not None:
+        return sh.gravity_force(helix, material.linear_density, gravity, kin)
+    return sh.map_strand_chunks(helix, lambda sub: sh.gravity_force(sub, material.linear_density, gravity))
 
 
 def rest_curvature_guess(helix: sh.SuperHelix, guess: str) -> np.ndarray:
@@ -90,14 +97,13 @@ def equilibrium_residuals(helix: sh.SuperHelix, rest_curvatures, material: Mater
                           contacts=None, forces=None) -> np.ndarray:
     """||K (q - q0) - F - H^T r|| / ||F|| per strand, recomputed from scratch (fresh kinematics,
     H^T r point by point), independent of how q0 was obtained."""
-    kin = sh.kinematics(helix)
-    F = sh.gravity_force(helix, material.linear_density, gravity, kin)
+    F = gravity_force(helix, material, gravity)
     K = sh.stiffness(helix, material.stiffness_diag)
     res = K * (helix.curvatures - rest_curvatures) - F
     if contacts is not None and forces is not None and len(forces):
         from .contact.jacobian import generalized_contact_force
 
-        res -= generalized_contact_force(helix, contacts, forces, kin)
+        res -= generalized_contact_force(helix, contacts, forces)
     num = np.linalg.norm(res.reshape(helix.n_strands, -1), axis=1)
     den = np.linalg.norm(F.reshape(helix.n_strands, -1), axis=1)
     return num / np.maximum(den, np.finfo(float).tiny)
@@ -271,7 +277,6 @@ def invert_groom(groom: Groom, head=None, params: InversionParams | None = None,
         fit = fit_groom(groom, tolerance=params.tolerance, relative_tolerance=params.relative_tolerance,
                         progress=not quiet)
     helix = fit.helix
-    kin = sh.kinematics(helix)
     report["strands"] = int(helix.n_strands)
     report["elements"] = int(helix.n_elements.sum())
     report["fit"] = {"max_error_m": float(np.max(fit.max_error)) if len(fit.max_error) else 0.0,
@@ -286,6 +291,7 @@ def invert_groom(groom: Groom, head=None, params: InversionParams | None = None,
         from .contact import detect_contacts
         from .contact.jacobian import contact_jacobian
 
+        kin = sh.kinematics(helix)
         with timer.stage("contacts"):
             pts, offsets, _, arc = sh.sample(helix, params.samples_per_element, kin)
             contacts = detect_contacts(pts, offsets, arc, radius=params.contact_radius,
@@ -315,7 +321,7 @@ def invert_groom(groom: Groom, head=None, params: InversionParams | None = None,
                 solve["status"], solve["residual"])
     else:
         with timer.stage("rest_curvatures"):
-            rest = isolated_rest_curvatures(helix, material, gravity, kin)
+            rest = isolated_rest_curvatures(helix, material, gravity)
 
     extra = {}
     if params.discrete_rest_data:
@@ -355,7 +361,7 @@ def invert_groom(groom: Groom, head=None, params: InversionParams | None = None,
 
 
 DISCRETE_KEYS = ("rod_points", "rod_offsets", "cosserat_directors", "cosserat_rest_kappa", "cosserat_rest_sigma",
-                 "cosserat_rest_lengths", "der_rest_lengths", "der_rest_kappa", "der_rest_twist")
+                 "cosserat_rest_lengths", "der_rest_lengths", "der_rest_kappa", "der_rest_twist", "der_frames")
 
 
 def contact_point_forces(groom: Groom, helix: sh.SuperHelix, contacts, forces):

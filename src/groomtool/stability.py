@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.linalg
+from threadpoolctl import threadpool_limits
 
 from .rods import superhelix as sh
 
@@ -25,13 +26,16 @@ from .rods import superhelix as sh
 def stiffness_ratios(helix: sh.SuperHelix, stiffness_diag, linear_density: float, gravity,
                      chunk: int = 256, progress=None) -> np.ndarray:
     """rho per strand (S,): lambda_max(K^-1/2 dF/dq K^-1/2) over the strand's real dofs."""
-    S, N = helix.lengths.shape
-    out = np.empty(S)
-    for start in range(0, S, chunk):
-        sub = helix.subset(np.arange(start, min(S, start + chunk)))
-        out[start:start + sub.n_strands] = _ratios(sub, stiffness_diag, linear_density, gravity)
-        if progress is not None:
-            progress.update(sub.n_strands)
+    order = np.argsort(helix.n_elements, kind="stable")  # similar lengths together: less padding
+    out = np.empty(helix.n_strands)
+    # many small eigenproblems: one BLAS thread each is several times faster than a thread pool
+    # fighting over the cores (measured 7x on a loaded 2-core machine)
+    with threadpool_limits(1, user_api="blas"):
+        for start in range(0, helix.n_strands, chunk):
+            ids = order[start:start + chunk]
+            out[ids] = _ratios(helix.subset(ids), stiffness_diag, linear_density, gravity)
+            if progress is not None:
+                progress.update(len(ids))
     return out
 
 

@@ -196,6 +196,20 @@ class SuperHelix:
                           self.curvatures[ids, :n], self.n_elements[ids])
 
 
+def map_strand_chunks(helix: SuperHelix, fn, chunk: int = 1024) -> np.ndarray:
+    """Apply ``fn(sub_helix) -> (s, n, ...)`` to groups of strands of similar element counts, so each
+    group is padded only to its own longest strand, and gather the results into (S, N, ...)."""
+    order = np.argsort(helix.n_elements, kind="stable")
+    out = None
+    for start in range(0, helix.n_strands, chunk):
+        ids = order[start:start + chunk]
+        part = fn(helix.subset(ids))
+        if out is None:
+            out = np.zeros((helix.n_strands, helix.max_elements) + part.shape[2:])
+        out[ids, :part.shape[1]] = part
+    return out if out is not None else np.zeros(helix.lengths.shape + (3,))
+
+
 # --------------------------------------------------------------------------- kinematics
 @dataclass
 class Kinematics:
@@ -434,12 +448,13 @@ def gravity_force_jacobian(helix: SuperHelix, linear_density: float, gravity, ki
     S, N = helix.lengths.shape
     G, m, X = _integrated_jacobians(helix, kin)
     gx = skew(g)
-    # off-diagonal blocks, j < k: -rhoS Theta_j^T [g]x G_k
-    left = np.einsum("sjba,bc->sjac", kin.Theta, gx)  # Theta_j^T [g]x
-    blocks = -linear_density * np.einsum("sjac,skcd->sjkad", left, G)
-    jj, kk = np.meshgrid(np.arange(N), np.arange(N), indexing="ij")
-    lower = jj > kk
-    blocks[:, lower] = np.swapaxes(blocks[:, kk[lower], jj[lower]], -1, -2)
+    # off-diagonal blocks, j < k: -rhoS Theta_j^T [g]x G_k, all (j, k) at once as one batched matmul
+    left = np.einsum("sjba,bc->sjac", kin.Theta, gx).reshape(S, 3 * N, 3)  # rows (j, a): Theta_j^T [g]x
+    right = G.transpose(0, 2, 1, 3).reshape(S, 3, 3 * N)  # columns (k, d): G_k
+    block_row = np.repeat(np.arange(N), 3)
+    upper = block_row[:, None] < block_row[None, :]
+    full = (-linear_density * (left @ right)) * upper
+    full += np.swapaxes(full, 1, 2)  # the lower blocks by symmetry
     # diagonal blocks
     w = helix.curvatures
     z = kin.z
@@ -450,9 +465,10 @@ def gravity_force_jacobian(helix: SuperHelix, linear_density: float, gravity, ki
     diag = _psi_form_hessian(c[3], dc[3], ddc[3], c[4], dc[4], ddc[4], w, z, u, e0)
     diag += m[..., None, None] * _psi_form_hessian(c[2], dc[2], ddc[2], c[3], dc[3], ddc[3], w, z, u, e0)
     diag += _psi_form_hessian(c[1], dc[1], ddc[1], c[2], dc[2], ddc[2], w, z, u, Y)
+    view = full.reshape(S, N, 3, N, 3)
     idx = np.arange(N)
-    blocks[:, idx, idx] = linear_density * diag
-    return blocks.transpose(0, 1, 3, 2, 4).reshape(S, 3 * N, 3 * N)
+    view[:, idx, :, idx, :] = linear_density * diag.transpose(1, 0, 2, 3)
+    return full
 
 
 def mass_matrix(helix: SuperHelix, linear_density: float, kin: Kinematics | None = None, order: int = 4):
