@@ -59,6 +59,10 @@ def test_units_are_converted(example, tmp_path):
     report = json.loads((out / "report.json").read_text())
     assert report["fit"]["tolerance_m"] == pytest.approx(5e-4)
     assert report["input_units"] == "cm"
+    # without --tolerance the default is 0.5 mm whatever the input units
+    out2 = tmp_path / "out2"
+    assert main(["invert", str(cm), "--units", "cm", "-o", str(out2), "--quiet"]) == EXIT_OK
+    assert json.loads((out2 / "report.json").read_text())["fit"]["tolerance_m"] == pytest.approx(5e-4)
     with np.load(out / "rest.npz") as z:
         assert np.allclose(z["root_positions"], groom.points[groom.offsets[:-1]], atol=1e-7)
 

@@ -316,11 +316,27 @@ def test_writer_failing_midway_keeps_old_groom(tmp_path, monkeypatch):
     path = save_groom(random_groom(0, 3), tmp_path / "g.obj")
     old = path.read_bytes()
 
-    def broken_savetxt(f, *args, **kwargs):
-        f.write("v 1 2 3\n")
-        raise OSError("disk full")
+    import contextlib
 
-    monkeypatch.setattr(np, "savetxt", broken_savetxt)
+    import groomtool.io.obj as obj_module
+
+    real_atomic_open = obj_module.atomic_open
+
+    @contextlib.contextmanager
+    def disk_full_after_first_write(target, *args, **kwargs):
+        with real_atomic_open(target, *args, **kwargs) as f:
+            class FailingFile:
+                writes = 0
+
+                def write(self, text):
+                    f.write(text)  # the header reaches the temporary file, then the disk is full
+                    self.writes += 1
+                    if self.writes == 2:
+                        raise OSError("disk full")
+
+            yield FailingFile()
+
+    monkeypatch.setattr(obj_module, "atomic_open", disk_full_after_first_write)
     with pytest.raises(OSError, match="disk full"):
         save_groom(random_groom(1, 5), path)
     assert path.read_bytes() == old

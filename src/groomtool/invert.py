@@ -225,12 +225,12 @@ class InversionResult:
         """The strands with their rest curvatures: the shape they take with no gravity, no contact."""
         return self.helix.with_curvatures(self.rest_curvatures)
 
-    def rest_shape(self, per_element: int = 8):
+    def rest_shape(self, per_element: int = 4):
         """(points, offsets) of the rest shape sampled ``per_element`` times per element."""
         pts, offsets, _, _ = sh.sample(self.rest_helix(), per_element)
         return pts, offsets
 
-    def fitted_shape(self, per_element: int = 8):
+    def fitted_shape(self, per_element: int = 4):
         pts, offsets, _, _ = sh.sample(self.helix, per_element)
         return pts, offsets
 

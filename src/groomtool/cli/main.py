@@ -15,6 +15,7 @@ import numpy as np
 from . import export_cmd, view_cmd
 
 EXIT_OK, EXIT_USER_ERROR, EXIT_NOT_CONVERGED = 0, 1, 2
+DEFAULT_TOLERANCE_M = 5e-4  # the fit tolerance when --tolerance is not given, whatever --units says
 
 
 class _Parser(argparse.ArgumentParser):
@@ -66,7 +67,7 @@ def build_parser() -> argparse.ArgumentParser:
     inv.add_argument("--head", default=None, help="head mesh (.obj, .ply, .stl), same units as the input")
     inv.add_argument("-o", "--output", default="groom_out", help="output directory (default ./groom_out)")
     _add_input_options(inv)
-    inv.add_argument("--tolerance", type=float, default=5e-4,
+    inv.add_argument("--tolerance", type=float, default=None,
                      help="max distance of the input points to the fitted helices, in --units (default 0.5 mm)")
     inv.add_argument("--relative-tolerance", type=float, default=None,
                      help="fit tolerance as a fraction of each strand's length (the smaller of both applies)")
@@ -167,7 +168,7 @@ def _invert_params(args, scale):
     from ..invert import InversionParams
 
     return InversionParams(
-        material=_material(args), tolerance=args.tolerance * scale,
+        material=_material(args), tolerance=DEFAULT_TOLERANCE_M if args.tolerance is None else args.tolerance * scale,
         relative_tolerance=args.relative_tolerance, contacts=args.contacts,
         contact_radius=None if args.contact_radius is None else args.contact_radius * scale,
         guess=args.guess, solver=args.solver, snap_roots=args.snap_roots, rod_segments=args.rod_segments,

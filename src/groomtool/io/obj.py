@@ -138,6 +138,8 @@ def write_obj(groom: Groom, path, scale: float = 1.0) -> None:
     header = f"# groomtool: {groom.n_strands} strands, {groom.n_points} vertices, 1 unit = {scale:g} m, up {groom.up}\n"
     with atomic_open(path, "w", encoding="ascii", newline="\n") as f:
         f.write(header)
-        np.savetxt(f, groom.points / scale, fmt="v %.9g %.9g %.9g")
+        x, y, z = (groom.points / scale).T.tolist()
+        if groom.n_points:  # str.format over lists: about twice as fast as np.savetxt
+            f.write("\n".join(map("v {:.9g} {:.9g} {:.9g}".format, x, y, z)) + "\n")
         for start, stop in zip(groom.offsets[:-1] + 1, groom.offsets[1:] + 1):
             f.write("l " + " ".join(map(str, range(start, stop))) + "\n")
