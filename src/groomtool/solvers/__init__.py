@@ -1,0 +1,29 @@
+"""Contact solvers: the SOCQP of the inversion and Coulomb friction of the simulator (MATH.md 4-6).
+
+    u = W r + b,  W = H D H^T + 2 gamma I,  one 3-vector block [N, T1, T2] per contact.
+
+Public API
+    solve_socqp(W, b, mu, method="gs" | "apgd" | "clarabel" | "auto", tol=1e-8, max_iter=None, r0=None, **options)
+    solve_coulomb(W, b, mu, method="gs", tol=1e-8, max_iter=None, r0=None, **options)
+    solve_contact_problem(problem, law="soc" | "coulomb", method="auto", tol=1e-8, max_iter=None, r0=None,
+                          form="auto" | "assembled" | "matrix_free", **options)
+    ContactProblem, SolveResult, solve_local (the 3x3 local solver)
+
+Modules: cones (projections, natural map), local (3x3 solver), residual (convergence measures),
+problem (ContactProblem), blocks (3x3-block storage and assembly), gauss_seidel, anderson, apgd,
+clarabel_socqp, api.
+"""
+
+from .api import SolveResult, choose_form, solve_contact_problem, solve_coulomb, solve_socqp
+from .local import solve_local
+from .problem import ContactProblem
+
+__all__ = [
+    "ContactProblem",
+    "SolveResult",
+    "choose_form",
+    "solve_contact_problem",
+    "solve_coulomb",
+    "solve_local",
+    "solve_socqp",
+]

@@ -1,0 +1,279 @@
+"""Public entry points: solve_socqp, solve_coulomb (assembled W) and solve_contact_problem (factored).
+
+Every solver returns a SolveResult whose ``residual`` is the measure of residual.py, computed on the
+returned r whatever the method, so results of different methods compare directly.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+
+from . import residual as _res
+from .apgd import FactoredMatvec, UpperMatvec, run_apgd
+from .blocks import PackedRows, UpperBlockDelassus, contact_segments
+from .clarabel_socqp import solve_assembled, solve_factored
+from .coulomb_fixed_point import run_coulomb_fixed_point
+from .cones import law_code
+from .gauss_seidel import AssembledOperator, MatrixFreeOperator, contact_order, run_gauss_seidel
+from .problem import ContactProblem
+
+DEFAULT_MAX_ITER = {"gs": 5000, "fixed_point": 5000, "apgd": 20000, "clarabel": 200}
+SOC_METHODS = ("gs", "apgd", "clarabel")
+COULOMB_METHODS = ("gs", "fixed_point")
+COULOMB_STALL_WINDOW = 200  # sweeps without halving the residual before "auto" switches to fixed_point
+ASSEMBLED_MEMORY_CAP = 4 << 30  # bytes of 3x3 blocks above which "auto" goes matrix-free
+
+
+@dataclass
+class SolveResult:
+    """Outcome of a contact solve.
+
+    r:              (3m,) reactions, [N, T1, T2] per contact.
+    status:         "solved", "max_iter", "time_limit", "diverged" (iterative methods) or clarabel's status.
+    converged:      residual <= tol (iterative) / clarabel reported Solved.
+    residual:       max_i ||r_i - P_K(r_i - rho_i u_eff_i)|| / max_i rho_i ||b_i||   (residual.py).
+    iterations:     sweeps (gs), iterations (apgd, clarabel).
+    objective:      1/2 r^T W r + b^T r (the SOCQP's objective; informative only for the Coulomb law).
+    cone_violation: max_i max(0, ||r_T,i|| - mu_i r_N,i).
+    time_s:         wall time including set-up (assembly, factorisation, ...).
+    method:         "gs", "apgd" or "clarabel".
+    info:           details: form, setup_s, solve_s, local_failures, history [(iteration, residual, s)], ...
+    """
+
+    r: np.ndarray
+    status: str
+    converged: bool
+    residual: float
+    iterations: int
+    objective: float
+    cone_violation: float
+    time_s: float
+    method: str
+    info: dict = field(default_factory=dict)
+
+
+def _iterative_status(converged: bool, residual: float, iterations: int, max_iter: int) -> str:
+    if converged:
+        return "solved"
+    if not np.isfinite(residual):
+        return "diverged"
+    return "max_iter" if iterations >= max_iter else "time_limit"
+
+
+def _resolve_method(law: str, method: str) -> str:
+    """'auto' -> 'gs' (SOC) / 'auto' kept for Coulomb (direct GS, then the fixed point if it stalls)."""
+    allowed = SOC_METHODS if law == "soc" else COULOMB_METHODS
+    if method == "auto":
+        return "gs" if law == "soc" else "auto"
+    if method not in allowed:
+        raise ValueError(
+            f"method {method!r} does not solve the {law} law: use one of {allowed + ('auto',)}"
+            + (" (the Coulomb law is not an optimisation problem)" if law == "coulomb" else "")
+        )
+    return method
+
+
+def _run_gs_family(op, law, method, tol, max_iter, r0, options, info):
+    """Gauss-Seidel (SOC or Coulomb), the Coulomb fixed point, or 'auto' (GS, then fixed point if it
+    stalls).  Returns (r, iterations, converged, residual of the solver)."""
+    if method == "fixed_point":
+        fp_opts = {k: v for k, v in options.items() if k in ("anderson", "time_limit", "check_every", "max_outer")}
+        out = run_coulomb_fixed_point(op, tol=tol, max_sweeps=max_iter, r0=r0, **fp_opts)
+        info.update(local_failures=out.local_failures, history=out.history, outer_iterations=out.outer,
+                    solve_s=out.solve_s)
+        return out.r, out.sweeps, out.converged, out.residual
+    stall = COULOMB_STALL_WINDOW if method == "auto" else None
+    out = run_gauss_seidel(op, law, tol=tol, max_sweeps=max_iter, r0=r0, stall_window=stall, **options)
+    info.update(local_failures=out.local_failures, history=out.history, solve_s=out.solve_s)
+    if method == "auto" and not out.converged and out.sweeps < max_iter and np.isfinite(out.residual):
+        fp_opts = {k: v for k, v in options.items() if k in ("anderson", "time_limit", "check_every")}
+        fp = run_coulomb_fixed_point(op, tol=tol, max_sweeps=max_iter - out.sweeps, r0=out.r, **fp_opts)
+        info.update(switched_to="fixed_point", gs_sweeps=out.sweeps, outer_iterations=fp.outer,
+                    local_failures=out.local_failures + fp.local_failures,
+                    history=out.history + [(out.sweeps + h[0], h[1], out.solve_s + h[2]) for h in fp.history[1:]],
+                    solve_s=out.solve_s + fp.solve_s)
+        return fp.r, out.sweeps + fp.sweeps, fp.converged, fp.residual
+    return out.r, out.sweeps, out.converged, out.residual
+
+
+def _resolve_order(order, H):
+    if order is None or isinstance(order, str):
+        return contact_order(H, order or "natural")
+    return np.ascontiguousarray(order, dtype=np.int64)
+
+
+# ----------------------------------------------------------------------------------------------
+# assembled W
+# ----------------------------------------------------------------------------------------------
+def _check_assembled(W, b, mu):
+    W = sp.csr_matrix(W, dtype=np.float64)
+    n = W.shape[0]
+    if W.shape[0] != W.shape[1] or n % 3:
+        raise ValueError(f"W must be square with 3m rows (3x3 blocks, normal first), got {W.shape}")
+    b = np.ascontiguousarray(b, dtype=np.float64).reshape(-1)
+    if b.shape[0] != n:
+        raise ValueError(f"b has {b.shape[0]} entries, W has {n} rows")
+    mu = np.ascontiguousarray(np.broadcast_to(np.asarray(mu, dtype=np.float64), (n // 3,)))
+    if np.any(mu < 0) or not np.all(np.isfinite(mu)):
+        raise ValueError("friction coefficients must be finite and >= 0")
+    return W, b, mu
+
+
+def _solve_assembled(W, b, mu, law, method, tol, max_iter, r0, options) -> SolveResult:
+    t0 = time.perf_counter()
+    W, b, mu = _check_assembled(W, b, mu)
+    method = _resolve_method(law, method)
+    max_iter = DEFAULT_MAX_ITER.get(method, 5000) if max_iter is None else int(max_iter)
+    info: dict = {}
+    if method in ("gs", "fixed_point", "auto"):
+        order = _resolve_order(options.pop("order", None), W)
+        op = AssembledOperator.from_sparse(W, b, mu, order)
+        setup_s = time.perf_counter() - t0
+        r, iters, conv, res_solver = _run_gs_family(op, law, method, tol, max_iter, r0, options, info)
+        info.update(form="assembled", setup_s=setup_s)
+        status = _iterative_status(conv, res_solver, iters, max_iter)
+    elif method == "apgd":
+        U = UpperBlockDelassus.from_sparse(W)
+        rho = _res.rho_from_diagonal(U.diagonal())
+        setup_s = time.perf_counter() - t0
+        out = run_apgd(UpperMatvec(U), b, mu, rho, tol=tol, max_iter=max_iter, r0=r0, **options)
+        r, iters, conv = out.r, out.iterations, out.converged
+        info.update(form="assembled", setup_s=setup_s, solve_s=out.solve_s, restarts=out.restarts, history=out.history)
+        status = _iterative_status(conv, out.residual, iters, max_iter)
+    else:
+        out = solve_assembled(W, b, mu, max_iter=max_iter, **options)
+        r, iters, status = out.r, out.iterations, out.status
+        conv = status == "Solved"
+        info.update(form="assembled", setup_s=out.setup_s, solve_s=out.solve_s, kkt_size=out.kkt_size)
+    u = W @ r + b
+    rho = _res.rho_from_diagonal(_diagonal_of(W))
+    residual = _res.residual(r, u, mu, rho, _res.residual_scale(b, rho), law=law)
+    return SolveResult(
+        r=r, status=status, converged=bool(conv), residual=float(residual), iterations=int(iters),
+        objective=float(0.5 * r @ (u + b)), cone_violation=_res.cone_violation(r, mu),
+        time_s=time.perf_counter() - t0, method=method, info=info,
+    )
+
+
+def _diagonal_of(W: sp.csr_matrix) -> np.ndarray:
+    """(m, 3, 3) diagonal blocks of a sparse W."""
+    m = W.shape[0] // 3
+    out = np.empty((m, 3, 3))
+    for a in range(3):
+        for c in range(3):
+            out[:, a, c] = W[a::3, c::3].diagonal()
+    return out
+
+
+def solve_socqp(W, b, mu, method: str = "gs", tol: float = 1e-8, max_iter: int | None = None, r0=None, **options) -> SolveResult:
+    """min 1/2 r^T W r + b^T r  s.t. r_i in K_mu_i = {||r_T|| <= mu r_N}.
+
+    W: scipy sparse (3m, 3m) symmetric PSD in 3x3 blocks, normal first in each block; b: (3m,);
+    mu: scalar or (m,).  method: "gs" (block Gauss-Seidel + Anderson acceleration), "apgd", "clarabel"
+    (interior point, exact), "auto" (= "gs").  tol: on the residual of residual.py (iterative methods).
+    options: gs: anderson=8 (memory; 0 = plain Gauss-Seidel), anderson_start=10, omega=1.0, order="natural", check_every=10, time_limit;
+    apgd: check_every, time_limit; clarabel: tol (its gap/feasibility tolerance), threads, linear_solver."""
+    return _solve_assembled(W, b, mu, "soc", method, tol, max_iter, r0, dict(options))
+
+
+def solve_coulomb(W, b, mu, method: str = "auto", tol: float = 1e-8, max_iter: int | None = None, r0=None, **options) -> SolveResult:
+    """Coulomb friction u = W r + b, (u_i, r_i) in Coulomb's law (De Saxcé form) for every contact.
+
+    Same arguments as solve_socqp.  method: "gs" (accelerated Gauss-Seidel on the law itself; it can
+    cycle on strongly coupled problems), "fixed_point" (SOCQPs with s = mu ||u_T||, coulomb_fixed_point.py),
+    "auto" (gs, switching to fixed_point if gs stalls for 200 sweeps)."""
+    return _solve_assembled(W, b, mu, "coulomb", method, tol, max_iter, r0, dict(options))
+
+
+# ----------------------------------------------------------------------------------------------
+# factored problem
+# ----------------------------------------------------------------------------------------------
+def sweep_costs(problem: ContactProblem) -> dict:
+    """Per-sweep flop estimates of both Gauss-Seidel forms and the bytes of the assembled blocks.
+    assembled: 18 flops per stored upper block; matrix_free: 6 per packed entry of H and of H D."""
+    H = problem.packed_H()
+    seg_ptr, _, h0, h1 = contact_segments(problem, H)
+    k = np.diff(seg_ptr)
+    n_blocks = int(np.sum(k * (k + 1) // 2)) + problem.n_contacts  # upper bound (diagonal counted twice)
+    sizes = np.diff(problem.dof_offsets)
+    seg_strand = np.repeat(np.arange(problem.n_strands), k)
+    dense = np.array([d.ndim == 2 for d in problem.D_blocks], dtype=bool)
+    g_entries = np.where(dense[seg_strand], sizes[seg_strand], (h1 - h0)).sum() if k.sum() else 0
+    return {
+        "assembled_flops": 18 * n_blocks,
+        "matrix_free_flops": 6 * (H.cols.size + int(g_entries)),
+        "assembled_bytes": 80 * n_blocks,
+    }
+
+
+def choose_form(problem: ContactProblem) -> str:
+    """'assembled' when its sweep is cheaper and its blocks fit ASSEMBLED_MEMORY_CAP, else 'matrix_free'."""
+    c = sweep_costs(problem)
+    if c["assembled_bytes"] > ASSEMBLED_MEMORY_CAP:
+        return "matrix_free"
+    return "assembled" if c["assembled_flops"] <= c["matrix_free_flops"] else "matrix_free"
+
+
+def solve_contact_problem(
+    problem: ContactProblem,
+    law: str = "soc",
+    method: str = "auto",
+    tol: float = 1e-8,
+    max_iter: int | None = None,
+    r0=None,
+    form: str = "auto",
+    **options,
+) -> SolveResult:
+    """Solve u = (H D H^T + 2 gamma I) r + b under ``law`` ("soc": the SOCQP of the inversion;
+    "coulomb": the forward simulator's friction) for a ContactProblem.
+
+    method: SOC: "gs" | "apgd" | "clarabel" | "auto" (= "gs"); Coulomb: "gs" | "fixed_point" | "auto"
+    (see solve_coulomb).  form (gs, apgd, fixed_point): "assembled" (W in 3x3 blocks,
+    assembled strand by strand), "matrix_free" (v = D H^T r kept per strand) or "auto" (choose_form).
+    clarabel uses the sparse factored SOCQP (clarabel_socqp.py).  Other options as in solve_socqp."""
+    t0 = time.perf_counter()
+    code = law_code(law)
+    law = "soc" if code == 0 else "coulomb"
+    method = _resolve_method(law, method)
+    if form not in ("auto", "assembled", "matrix_free"):
+        raise ValueError(f"unknown form {form!r}")
+    max_iter = DEFAULT_MAX_ITER.get(method, 5000) if max_iter is None else int(max_iter)
+    options = dict(options)
+    info: dict = {}
+    if method == "clarabel":
+        out = solve_factored(problem, max_iter=max_iter, **options)
+        r, iters, status = out.r, out.iterations, out.status
+        conv = status == "Solved"
+        info.update(form="factored", setup_s=out.setup_s, solve_s=out.solve_s, kkt_size=out.kkt_size)
+    else:
+        if form == "auto":
+            form = choose_form(problem)
+        order = options.pop("order", None)
+        if method != "apgd":
+            order = _resolve_order(order, problem.H)
+            op = AssembledOperator.from_problem(problem, order) if form == "assembled" else MatrixFreeOperator(problem, order)
+            setup_s = time.perf_counter() - t0
+            r, iters, conv, res_solver = _run_gs_family(op, law, method, tol, max_iter, r0, options, info)
+        else:
+            if form == "assembled":
+                op = AssembledOperator.from_problem(problem)
+                mv, rho, b = UpperMatvec(op.W), op.rho, problem.b
+            else:
+                mv, rho, b = FactoredMatvec(problem), problem.rho(), problem.b
+            setup_s = time.perf_counter() - t0
+            out = run_apgd(mv, b, problem.mu, rho, tol=tol, max_iter=max_iter, r0=r0, **options)
+            info.update(restarts=out.restarts, solve_s=out.solve_s, history=out.history)
+            r, iters, conv, res_solver = out.r, out.iterations, out.converged, out.residual
+        status = _iterative_status(conv, res_solver, iters, max_iter)
+        info.update(form=form, setup_s=setup_s)
+    u = problem.velocity(r)
+    residual = problem.residual(r, law=law, u=u)
+    return SolveResult(
+        r=r, status=status, converged=bool(conv), residual=float(residual), iterations=int(iters),
+        objective=float(0.5 * r @ (u + problem.b)), cone_violation=problem.cone_violation(r),
+        time_s=time.perf_counter() - t0, method=method, info=info,
+    )

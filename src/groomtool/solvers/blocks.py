@@ -1,0 +1,510 @@
+"""Sparse 3x3-block storage of the Delassus operator, and of H / HD per contact.
+
+BlockDelassus: W in block-CSR (every block row stores all its blocks, both triangles, so a sweep reads
+one contiguous row): W_ij != 0 only when contacts i and j share a strand.
+
+PackedRows: a (3m, n) sparse matrix regrouped per contact: the union of the columns its three rows
+touch, and a (k, 3) value panel, so one index load serves the normal and both tangent rows.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+from numba import njit
+
+_FM = {"contract"}
+
+
+@njit(cache=True, fastmath=_FM)
+def block_matvec(indptr, indices, blocks, r, b, out):
+    """out_i = sum_j W_ij r_j + b_i (block-CSR W, r/b/out: (m, 3))."""
+    for i in range(indptr.shape[0] - 1):
+        u0 = b[i, 0]
+        u1 = b[i, 1]
+        u2 = b[i, 2]
+        for p in range(indptr[i], indptr[i + 1]):
+            j = indices[p]
+            x0 = r[j, 0]
+            x1 = r[j, 1]
+            x2 = r[j, 2]
+            u0 += blocks[p, 0, 0] * x0 + blocks[p, 0, 1] * x1 + blocks[p, 0, 2] * x2
+            u1 += blocks[p, 1, 0] * x0 + blocks[p, 1, 1] * x1 + blocks[p, 1, 2] * x2
+            u2 += blocks[p, 2, 0] * x0 + blocks[p, 2, 1] * x1 + blocks[p, 2, 2] * x2
+        out[i, 0] = u0
+        out[i, 1] = u1
+        out[i, 2] = u2
+
+
+@dataclass
+class BlockDelassus:
+    """W (3m x 3m) as block-CSR: row i's blocks are blocks[indptr[i]:indptr[i+1]], columns indices[...]."""
+
+    indptr: np.ndarray
+    indices: np.ndarray
+    blocks: np.ndarray
+
+    @classmethod
+    def from_sparse(cls, W) -> "BlockDelassus":
+        """From any scipy sparse (3m, 3m) matrix; the diagonal blocks are always stored."""
+        W = sp.csr_matrix(W, dtype=np.float64)
+        if W.shape[0] != W.shape[1] or W.shape[0] % 3:
+            raise ValueError(f"W must be square with a multiple of 3 rows, got {W.shape}")
+        n = W.shape[0]
+        eye = sp.identity(n, format="csr")
+        Wb = sp.bsr_matrix(W + eye, blocksize=(3, 3))
+        Wb.sort_indices()
+        data = np.ascontiguousarray(Wb.data, dtype=np.float64)
+        indptr = np.ascontiguousarray(Wb.indptr, dtype=np.int64)
+        indices = np.ascontiguousarray(Wb.indices, dtype=np.int64)
+        rows = np.repeat(np.arange(n // 3), np.diff(indptr))
+        diag = rows == indices
+        data[diag] -= np.eye(3)
+        return cls(indptr, indices, data)
+
+    @property
+    def n_contacts(self) -> int:
+        return self.indptr.shape[0] - 1
+
+    @property
+    def nbytes(self) -> int:
+        return self.indptr.nbytes + self.indices.nbytes + self.blocks.nbytes
+
+    def diagonal(self) -> np.ndarray:
+        """(m, 3, 3) diagonal blocks W_ii."""
+        m = self.n_contacts
+        rows = np.repeat(np.arange(m), np.diff(self.indptr))
+        pos = np.flatnonzero(rows == self.indices)
+        return self.blocks[pos].copy()
+
+    def matvec(self, r: np.ndarray, b: np.ndarray | None = None) -> np.ndarray:
+        """W r (+ b) for r of shape (3m,) or (m, 3); returns (m, 3)."""
+        m = self.n_contacts
+        r = np.ascontiguousarray(np.asarray(r, dtype=np.float64).reshape(m, 3))
+        b = np.zeros((m, 3)) if b is None else np.ascontiguousarray(np.asarray(b, dtype=np.float64).reshape(m, 3))
+        out = np.empty((m, 3))
+        block_matvec(self.indptr, self.indices, self.blocks, r, b, out)
+        return out
+
+
+@njit(cache=True, fastmath=_FM)
+def upper_block_matvec(indptr, indices, blocks, r, b, out):
+    """out = W r + b for W stored as its upper block triangle (row i: blocks (i, j), j >= i)."""
+    m = indptr.shape[0] - 1
+    for i in range(m):
+        out[i, 0] = b[i, 0]
+        out[i, 1] = b[i, 1]
+        out[i, 2] = b[i, 2]
+    for i in range(m):
+        y0 = r[i, 0]
+        y1 = r[i, 1]
+        y2 = r[i, 2]
+        u0 = 0.0
+        u1 = 0.0
+        u2 = 0.0
+        for p in range(indptr[i], indptr[i + 1]):
+            j = indices[p]
+            x0 = r[j, 0]
+            x1 = r[j, 1]
+            x2 = r[j, 2]
+            u0 += blocks[p, 0, 0] * x0 + blocks[p, 0, 1] * x1 + blocks[p, 0, 2] * x2
+            u1 += blocks[p, 1, 0] * x0 + blocks[p, 1, 1] * x1 + blocks[p, 1, 2] * x2
+            u2 += blocks[p, 2, 0] * x0 + blocks[p, 2, 1] * x1 + blocks[p, 2, 2] * x2
+            if j != i:
+                out[j, 0] += blocks[p, 0, 0] * y0 + blocks[p, 1, 0] * y1 + blocks[p, 2, 0] * y2
+                out[j, 1] += blocks[p, 0, 1] * y0 + blocks[p, 1, 1] * y1 + blocks[p, 2, 1] * y2
+                out[j, 2] += blocks[p, 0, 2] * y0 + blocks[p, 1, 2] * y1 + blocks[p, 2, 2] * y2
+        out[i, 0] += u0
+        out[i, 1] += u1
+        out[i, 2] += u2
+
+
+@dataclass
+class UpperBlockDelassus:
+    """W (symmetric) stored as its upper block triangle: row i holds blocks (i, j), j >= i, the
+    diagonal block first.  Half the memory traffic of BlockDelassus; the lower part is used as
+    W_ji = W_ij^T."""
+
+    indptr: np.ndarray
+    indices: np.ndarray
+    blocks: np.ndarray
+
+    @classmethod
+    def from_block(cls, W: BlockDelassus) -> "UpperBlockDelassus":
+        m = W.n_contacts
+        rows = np.repeat(np.arange(m), np.diff(W.indptr))
+        keep = W.indices >= rows
+        # diagonal first in each row (indices are sorted, so it is already first among j >= i)
+        indptr = np.zeros(m + 1, dtype=np.int64)
+        np.add.at(indptr, rows[keep] + 1, 1)
+        indptr = np.cumsum(indptr)
+        idx_type = np.int32 if m < 2**31 else np.int64
+        return cls(indptr, np.ascontiguousarray(W.indices[keep], dtype=idx_type), np.ascontiguousarray(W.blocks[keep]))
+
+    @classmethod
+    def from_sparse(cls, W) -> "UpperBlockDelassus":
+        return cls.from_block(BlockDelassus.from_sparse(W))
+
+    @property
+    def n_contacts(self) -> int:
+        return self.indptr.shape[0] - 1
+
+    @property
+    def nbytes(self) -> int:
+        return self.indptr.nbytes + self.indices.nbytes + self.blocks.nbytes
+
+    def diagonal(self) -> np.ndarray:
+        return self.blocks[self.indptr[:-1]].copy()
+
+    def matvec(self, r: np.ndarray, b: np.ndarray | None = None) -> np.ndarray:
+        m = self.n_contacts
+        r = np.ascontiguousarray(np.asarray(r, dtype=np.float64).reshape(m, 3))
+        b = np.zeros((m, 3)) if b is None else np.ascontiguousarray(np.asarray(b, dtype=np.float64).reshape(m, 3))
+        out = np.empty((m, 3))
+        upper_block_matvec(self.indptr, self.indices, self.blocks, r, b, out)
+        return out
+
+
+@njit(cache=True)
+def _merge_rows(indptr, indices, data, ptr, cols, vals, count_only):
+    """Merge the sorted column lists of rows 3i, 3i+1, 3i+2 of a CSR matrix.  count_only: ptr[i+1] =
+    number of distinct columns of contact i; else fill cols / vals (ptr then holds the offsets)."""
+    m = ptr.shape[0] - 1
+    for i in range(m):
+        p0 = indptr[3 * i]
+        p1 = indptr[3 * i + 1]
+        p2 = indptr[3 * i + 2]
+        e0 = p1
+        e1 = p2
+        e2 = indptr[3 * i + 3]
+        out = 0 if count_only else ptr[i]
+        big = np.iinfo(np.int64).max
+        while p0 < e0 or p1 < e1 or p2 < e2:
+            c0 = np.int64(indices[p0]) if p0 < e0 else big
+            c1 = np.int64(indices[p1]) if p1 < e1 else big
+            c2 = np.int64(indices[p2]) if p2 < e2 else big
+            c = min(c0, min(c1, c2))
+            if not count_only:
+                cols[out] = c
+            if c0 == c:
+                if not count_only:
+                    vals[out, 0] += data[p0]
+                p0 += 1
+            if c1 == c:
+                if not count_only:
+                    vals[out, 1] += data[p1]
+                p1 += 1
+            if c2 == c:
+                if not count_only:
+                    vals[out, 2] += data[p2]
+                p2 += 1
+            out += 1
+        if count_only:
+            ptr[i + 1] = out
+
+
+@dataclass
+class PackedRows:
+    """Per-contact column panels of a (3m, n) sparse matrix: contact i touches columns
+    cols[ptr[i]:ptr[i+1]] with values vals[ptr[i]:ptr[i+1], 0:3] (its N, T1, T2 rows)."""
+
+    ptr: np.ndarray
+    cols: np.ndarray
+    vals: np.ndarray
+
+    @classmethod
+    def from_sparse(cls, M) -> "PackedRows":
+        M = sp.csr_matrix(M, dtype=np.float64)
+        if not M.has_sorted_indices:
+            M = M.copy()
+            M.sort_indices()
+        m = M.shape[0] // 3
+        indptr = M.indptr
+        indices = M.indices
+        ptr = np.zeros(m + 1, dtype=np.int64)
+        _merge_rows(indptr, indices, M.data, ptr, np.zeros(0, dtype=np.int32 if M.shape[1] < 2**31 else np.int64),
+                    np.zeros((0, 3)), True)
+        ptr = np.cumsum(ptr)
+        cols = np.empty(ptr[-1], dtype=np.int32 if M.shape[1] < 2**31 else np.int64)
+        vals = np.zeros((ptr[-1], 3))
+        _merge_rows(indptr, indices, M.data, ptr, cols, vals, False)
+        return cls(ptr, cols, vals)
+
+    @property
+    def nbytes(self) -> int:
+        return self.ptr.nbytes + self.cols.nbytes + self.vals.nbytes
+
+
+# ----------------------------------------------------------------------------------------------
+# direct assembly of the upper block triangle of W = H D H^T + 2 gamma I, strand by strand
+# ----------------------------------------------------------------------------------------------
+def flat_strand_blocks(problem):
+    """D as flat storage (data, ptr, is_diagonal): strand s's block is data[ptr[s]:ptr[s+1]]
+    (n_s entries if diagonal, n_s * n_s row-major otherwise)."""
+    return problem.D_data, problem.D_ptr, problem.D_is_diag
+
+
+@njit(cache=True, fastmath=_FM)
+def strand_blocks_apply(d_data, d_ptr, d_diag, offsets, x, out):
+    """out = D x for block-diagonal D in flat storage."""
+    for s in range(offsets.shape[0] - 1):
+        off = offsets[s]
+        ns = offsets[s + 1] - off
+        dp = d_ptr[s]
+        if d_diag[s]:
+            for k in range(ns):
+                out[off + k] = d_data[dp + k] * x[off + k]
+        else:
+            for a in range(ns):
+                acc = 0.0
+                row = dp + a * ns
+                for k in range(ns):
+                    acc += d_data[row + k] * x[off + k]
+                out[off + a] = acc
+
+
+@njit(cache=True)
+def _pack_hd(h_ptr, h_cols, h_vals, offsets, d_data, d_ptr, d_diag, strand_of, g_ptr, g_cols, g_vals, count_only):
+    """Packed rows of H D from packed H: per contact and strand segment, G[q] = sum_p H[p] D_s[p, q]
+    over the strand's dofs q (dense D_s) or G[p] = d_p H[p] (diagonal D_s)."""
+    m = h_ptr.shape[0] - 1
+    for i in range(m):
+        out = g_ptr[i]
+        p = h_ptr[i]
+        cnt = 0
+        while p < h_ptr[i + 1]:
+            s = strand_of[p]
+            q = p
+            while q < h_ptr[i + 1] and strand_of[q] == s:
+                q += 1
+            off = offsets[s]
+            ns = offsets[s + 1] - off
+            dp = d_ptr[s]
+            if d_diag[s]:
+                if not count_only:
+                    for t in range(p, q):
+                        dd = d_data[dp + h_cols[t] - off]
+                        g_cols[out + cnt] = h_cols[t]
+                        g_vals[out + cnt, 0] = dd * h_vals[t, 0]
+                        g_vals[out + cnt, 1] = dd * h_vals[t, 1]
+                        g_vals[out + cnt, 2] = dd * h_vals[t, 2]
+                        cnt += 1
+                else:
+                    cnt += q - p
+            else:
+                if not count_only:
+                    for k in range(ns):
+                        g_cols[out + cnt + k] = off + k
+                        g_vals[out + cnt + k, 0] = 0.0
+                        g_vals[out + cnt + k, 1] = 0.0
+                        g_vals[out + cnt + k, 2] = 0.0
+                    for t in range(p, q):
+                        row = dp + (h_cols[t] - off) * ns
+                        v0 = h_vals[t, 0]
+                        v1 = h_vals[t, 1]
+                        v2 = h_vals[t, 2]
+                        for k in range(ns):
+                            dd = d_data[row + k]
+                            g_vals[out + cnt + k, 0] += dd * v0
+                            g_vals[out + cnt + k, 1] += dd * v1
+                            g_vals[out + cnt + k, 2] += dd * v2
+                cnt += ns
+            p = q
+        if count_only:
+            g_ptr[i + 1] = cnt
+
+
+def pack_HD(H: "PackedRows", offsets, d_data, d_ptr, d_diag) -> "PackedRows":
+    """H D regrouped per contact, from packed H and D in flat storage (no sparse product)."""
+    m = H.ptr.shape[0] - 1
+    strand_of = np.searchsorted(offsets, H.cols, side="right") - 1
+    ptr = np.zeros(m + 1, dtype=np.int64)
+    z_cols = np.zeros(0, dtype=H.cols.dtype)
+    z_vals = np.zeros((0, 3))
+    _pack_hd(H.ptr, H.cols, H.vals, offsets, d_data, d_ptr, d_diag, strand_of, ptr, z_cols, z_vals, True)
+    ptr = np.cumsum(ptr)
+    cols = np.empty(ptr[-1], dtype=H.cols.dtype)
+    vals = np.empty((ptr[-1], 3))
+    _pack_hd(H.ptr, H.cols, H.vals, offsets, d_data, d_ptr, d_diag, strand_of, ptr, cols, vals, False)
+    return PackedRows(ptr, cols, vals)
+
+
+@njit(cache=True, fastmath=_FM)
+def _strand_pair_blocks(seg_ptr, seg_contact, seg_h0, seg_h1, h_cols, h_vals, offsets, d_data, d_ptr, d_diag,
+                        out_i, out_j, out_blocks):
+    """For every strand s and every pair (a <= b) of contact segments on s:
+    W_{i_a i_b} += sum_{p, q} H_a[p] D_s[p, q] H_b[q]^T  (written as the upper-triangle block).
+    Returns the number of blocks written."""
+    n_out = 0
+    S = seg_ptr.shape[0] - 1
+    for s in range(S):
+        k0 = seg_ptr[s]
+        k1 = seg_ptr[s + 1]
+        k = k1 - k0
+        if k == 0:
+            continue
+        off = offsets[s]
+        ns = offsets[s + 1] - off
+        G = np.zeros((k, ns, 3))  # G[a, q] = (D_s H_a^T)[q]
+        dp = d_ptr[s]
+        for a in range(k):
+            for p in range(seg_h0[k0 + a], seg_h1[k0 + a]):
+                col = h_cols[p] - off
+                v0 = h_vals[p, 0]
+                v1 = h_vals[p, 1]
+                v2 = h_vals[p, 2]
+                if d_diag[s]:
+                    dd = d_data[dp + col]
+                    G[a, col, 0] += dd * v0
+                    G[a, col, 1] += dd * v1
+                    G[a, col, 2] += dd * v2
+                else:
+                    for q in range(ns):
+                        dd = d_data[dp + col * ns + q]
+                        G[a, q, 0] += dd * v0
+                        G[a, q, 1] += dd * v1
+                        G[a, q, 2] += dd * v2
+        for a in range(k):
+            ia = seg_contact[k0 + a]
+            for b in range(k):
+                ib = seg_contact[k0 + b]
+                if ib < ia or (ib == ia and b < a):
+                    continue
+                # block (ia, ib)[x, y] = sum_q G[a, q, x] H_b[q, y]
+                b00 = b01 = b02 = b10 = b11 = b12 = b20 = b21 = b22 = 0.0
+                for p in range(seg_h0[k0 + b], seg_h1[k0 + b]):
+                    q = h_cols[p] - off
+                    g0 = G[a, q, 0]
+                    g1 = G[a, q, 1]
+                    g2 = G[a, q, 2]
+                    y0 = h_vals[p, 0]
+                    y1 = h_vals[p, 1]
+                    y2 = h_vals[p, 2]
+                    b00 += g0 * y0
+                    b01 += g0 * y1
+                    b02 += g0 * y2
+                    b10 += g1 * y0
+                    b11 += g1 * y1
+                    b12 += g1 * y2
+                    b20 += g2 * y0
+                    b21 += g2 * y1
+                    b22 += g2 * y2
+                out_i[n_out] = ia
+                out_j[n_out] = ib
+                blk = out_blocks[n_out]
+                blk[0, 0] = b00
+                blk[0, 1] = b01
+                blk[0, 2] = b02
+                blk[1, 0] = b10
+                blk[1, 1] = b11
+                blk[1, 2] = b12
+                blk[2, 0] = b20
+                blk[2, 1] = b21
+                blk[2, 2] = b22
+                if ia == ib and a != b:
+                    # two segments of one contact on the same strand: the pair (b, a) is the transpose
+                    for x in range(3):
+                        for y in range(x + 1, 3):
+                            t = blk[x, y] + blk[y, x]
+                            blk[x, y] = t
+                            blk[y, x] = t
+                    for x in range(3):
+                        blk[x, x] *= 2.0
+                n_out += 1
+    return n_out
+
+
+def contact_segments(problem, H: "PackedRows"):
+    """Per (strand, contact) runs of H's packed panels: (seg_ptr over strands, contact, h0, h1)."""
+    m = problem.n_contacts
+    strand = np.searchsorted(problem.dof_offsets, H.cols, side="right") - 1
+    contact = np.repeat(np.arange(m, dtype=np.int64), np.diff(H.ptr))
+    if H.cols.size == 0:
+        z = np.zeros(0, dtype=np.int64)
+        return np.zeros(problem.n_strands + 1, dtype=np.int64), z, z, z
+    start = np.ones(H.cols.size, dtype=bool)
+    start[1:] = (contact[1:] != contact[:-1]) | (strand[1:] != strand[:-1])
+    h0 = np.flatnonzero(start)
+    h1 = np.append(h0[1:], H.cols.size)
+    seg_strand = strand[h0]
+    seg_contact = contact[h0]
+    order = np.lexsort((seg_contact, seg_strand))
+    seg_ptr = np.zeros(problem.n_strands + 1, dtype=np.int64)
+    np.add.at(seg_ptr, seg_strand + 1, 1)
+    seg_ptr = np.cumsum(seg_ptr)
+    return seg_ptr, seg_contact[order], h0[order], h1[order]
+
+
+def assemble_upper(problem, H: "PackedRows | None" = None) -> UpperBlockDelassus:
+    """The upper block triangle of W = H D H^T + 2 gamma I, assembled strand by strand in numba
+    (no sparse-sparse product; cost sum_s k_s^2 * nnz per contact panel)."""
+    H = problem.packed_H() if H is None else H
+    m = problem.n_contacts
+    seg_ptr, seg_contact, h0, h1 = contact_segments(problem, H)
+    k = np.diff(seg_ptr)
+    n_pairs = int(np.sum(k * (k + 1) // 2))
+    out_i = np.empty(n_pairs, dtype=np.int64)
+    out_j = np.empty(n_pairs, dtype=np.int64)
+    out_b = np.empty((n_pairs, 3, 3))
+    d_data, d_ptr, d_diag = flat_strand_blocks(problem)
+    n = _strand_pair_blocks(seg_ptr, seg_contact, h0, h1, H.cols, H.vals, problem.dof_offsets, d_data, d_ptr, d_diag,
+                            out_i, out_j, out_b)
+    # every contact gets its diagonal block (+ 2 gamma I)
+    out_i = np.concatenate([out_i[:n], np.arange(m)])
+    out_j = np.concatenate([out_j[:n], np.arange(m)])
+    out_b = np.concatenate([out_b[:n], np.broadcast_to(2.0 * problem.gamma * np.eye(3), (m, 3, 3))])
+    key = out_i * m + out_j
+    order = np.argsort(key, kind="stable")
+    key = key[order]
+    first = np.ones(key.size, dtype=bool)
+    first[1:] = key[1:] != key[:-1]
+    starts = np.flatnonzero(first)
+    blocks = np.add.reduceat(out_b[order], starts, axis=0)
+    ui = key[starts] // m
+    uj = key[starts] % m
+    indptr = np.zeros(m + 1, dtype=np.int64)
+    np.add.at(indptr, ui + 1, 1)
+    indptr = np.cumsum(indptr)
+    idx_type = np.int32 if m < 2**31 else np.int64
+    return UpperBlockDelassus(indptr, np.ascontiguousarray(uj, dtype=idx_type), np.ascontiguousarray(blocks))
+
+
+@njit(cache=True, fastmath=_FM)
+def _diagonal_from_packed(h_ptr, h_cols, h_vals, g_ptr, g_cols, g_vals, gamma2, out):
+    """out_i = sum_q G_i[q] H_i[q]^T + 2 gamma I (merge of the two sorted column lists)."""
+    for i in range(h_ptr.shape[0] - 1):
+        for x in range(3):
+            for y in range(3):
+                out[i, x, y] = 0.0
+        p = h_ptr[i]
+        q = g_ptr[i]
+        pe = h_ptr[i + 1]
+        qe = g_ptr[i + 1]
+        while p < pe and q < qe:
+            if h_cols[p] < g_cols[q]:
+                p += 1
+            elif h_cols[p] > g_cols[q]:
+                q += 1
+            else:
+                for x in range(3):
+                    gx = g_vals[q, x]
+                    for y in range(3):
+                        out[i, x, y] += gx * h_vals[p, y]
+                p += 1
+                q += 1
+        for x in range(3):
+            for y in range(x + 1, 3):
+                t = 0.5 * (out[i, x, y] + out[i, y, x])
+                out[i, x, y] = t
+                out[i, y, x] = t
+            out[i, x, x] += gamma2
+
+
+def diagonal_blocks(H: "PackedRows", G: "PackedRows", gamma: float) -> np.ndarray:
+    """(m, 3, 3) W_ii = H_i D H_i^T + 2 gamma I from packed H and G = H D."""
+    m = H.ptr.shape[0] - 1
+    out = np.empty((m, 3, 3))
+    _diagonal_from_packed(H.ptr, H.cols, H.vals, G.ptr, G.cols, G.vals, 2.0 * gamma, out)
+    return out

@@ -1,0 +1,482 @@
+"""Block Gauss-Seidel over contacts (section 5 of MATH.md), matrix-free or on the assembled W.
+
+One sweep visits the contacts in a fixed order; contact i solves its 3x3 local problem
+
+    u_i = W_ii r_i + c_i,   c_i = b_i + sum_{j != i} W_ij r_j = u_i(r) - W_ii r_i
+
+exactly (local.py) with the others fixed.  Two ways to get u_i(r):
+
+* "assembled":   W's upper block triangle (blocks.UpperBlockDelassus): u_i = b_i + acc_i + sum_{j>=i} W_ij r_j,
+                 acc_i = sum_{j<i} W_ji^T r_j scattered by the earlier rows of the same sweep (each block
+                 is read once per sweep: about 45 % less memory traffic than full block rows);
+* "matrix_free": keep v = D H^T r (n,); u_i = H_i v + 2 gamma r_i + b_i, and after the update
+                 v += (D H_i^T) (r_i_new - r_i_old)  (HD rows packed per contact, blocks.PackedRows).
+
+Over-relaxation (SOC law only): contact i instead takes the W_ii-metric projection onto K_mu of the
+relaxed unconstrained step r_i - omega W_ii^{-1} u_i, i.e. the local problem with
+c'_i = omega c_i + (omega - 1) W_ii r_i  (omega = 1 is plain Gauss-Seidel).
+
+The sweep map r -> G(r) is Anderson-accelerated (anderson.py): after a few plain sweeps, the next
+iterate mixes the last few (r, G(r)) pairs; the returned r is always a sweep's output.  On the hair
+problems this cuts the sweeps 3-4x (see docs/solvers.md).
+
+Deterministic (sequential, fixed order).  Stops when the residual of residual.py is <= tol, checked
+every few sweeps on the exact u = W r + b.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+from numba import njit
+
+_FM = {"contract"}
+
+from . import residual as _res
+from .anderson import AndersonMixer
+from .blocks import PackedRows, UpperBlockDelassus, assemble_upper, upper_block_matvec
+from .cones import SOC, law_code
+from .local import FAILED, LOCAL_TOL, NEWTON_MAX_ITER, normalize_block, solve_block
+
+
+# ----------------------------------------------------------------------------------------------
+# kernels
+# ----------------------------------------------------------------------------------------------
+@njit(cache=True, fastmath=_FM)
+def normalize_diagonal(diag):
+    """Per contact: s = tr(W_ii)/3, W_ii / s and its inverse as symmetric 6-vectors
+    (a00, a01, a02, a11, a12, a22), and an invertible flag."""
+    m = diag.shape[0]
+    s = np.empty(m)
+    An = np.empty((m, 6))
+    Ainv = np.empty((m, 6))
+    ok = np.empty(m, dtype=np.bool_)
+    for i in range(m):
+        si, a, ai, oki = normalize_block(diag[i])
+        s[i] = si
+        An[i, 0] = a[0]
+        An[i, 1] = 0.5 * (a[1] + a[3])
+        An[i, 2] = 0.5 * (a[2] + a[6])
+        An[i, 3] = a[4]
+        An[i, 4] = 0.5 * (a[5] + a[7])
+        An[i, 5] = a[8]
+        Ainv[i, 0] = ai[0]
+        Ainv[i, 1] = 0.5 * (ai[1] + ai[3])
+        Ainv[i, 2] = 0.5 * (ai[2] + ai[6])
+        Ainv[i, 3] = ai[4]
+        Ainv[i, 4] = 0.5 * (ai[5] + ai[7])
+        Ainv[i, 5] = ai[8]
+        ok[i] = oki
+    return s, An, Ainv, ok
+
+
+@njit(cache=True, inline="always", fastmath=_FM)
+def _sym9(M, i):
+    """Row-major 9-tuple of the symmetric 3x3 stored as M[i, 0:6] = (a00, a01, a02, a11, a12, a22)."""
+    a00 = M[i, 0]
+    a01 = M[i, 1]
+    a02 = M[i, 2]
+    a11 = M[i, 3]
+    a12 = M[i, 4]
+    a22 = M[i, 5]
+    return (a00, a01, a02, a01, a11, a12, a02, a12, a22)
+
+
+@njit(cache=True, inline="always", fastmath=_FM)
+def _local_update(law, mu, s, An, Ainv, ok, i, c0, c1, c2, r, omega, tol, max_newton):
+    """Solve contact i's local problem u_i = W_ii r_i + c_i (c_i: everything but the diagonal term);
+    returns (status, new r_i).  omega != 1: c_i <- omega c_i + (omega - 1) W_ii r_i (over-relaxation)."""
+    A = _sym9(An, i)
+    Ai = _sym9(Ainv, i)
+    si = s[i]
+    r0 = r[i, 0]
+    r1 = r[i, 1]
+    r2 = r[i, 2]
+    if omega != 1.0:
+        w0 = si * (A[0] * r0 + A[1] * r1 + A[2] * r2)
+        w1 = si * (A[3] * r0 + A[4] * r1 + A[5] * r2)
+        w2 = si * (A[6] * r0 + A[7] * r1 + A[8] * r2)
+        c0 = omega * c0 + (omega - 1.0) * w0
+        c1 = omega * c1 + (omega - 1.0) * w1
+        c2 = omega * c2 + (omega - 1.0) * w2
+    return solve_block(law, mu[i], si, A, Ai, ok[i], c0, c1, c2, r0, r1, r2, tol, max_newton)
+
+
+@njit(cache=True, fastmath=_FM)
+def sweep_upper(law, indptr, indices, blocks, b, mu, s, An, Ainv, ok, omega, r, acc, tol, max_newton):
+    """One forward sweep on the upper block triangle of W (natural order): c_i = b_i + acc_i +
+    sum_{j > i} W_ij r_j (old values), acc_i = sum_{j < i} W_ji^T r_j (new values, scattered by the
+    rows before i).  r (m, 3) updated in place; acc (m, 3) is scratch.  Returns local failures."""
+    m = indptr.shape[0] - 1
+    for i in range(m):
+        acc[i, 0] = 0.0
+        acc[i, 1] = 0.0
+        acc[i, 2] = 0.0
+    fails = 0
+    for i in range(m):
+        u0 = b[i, 0] + acc[i, 0]
+        u1 = b[i, 1] + acc[i, 1]
+        u2 = b[i, 2] + acc[i, 2]
+        p0 = indptr[i] + 1  # the diagonal block comes first; its term is s_i An_i r_i, left out of c_i
+        p1 = indptr[i + 1]
+        for p in range(p0, p1):
+            j = indices[p]
+            x0 = r[j, 0]
+            x1 = r[j, 1]
+            x2 = r[j, 2]
+            u0 += blocks[p, 0, 0] * x0 + blocks[p, 0, 1] * x1 + blocks[p, 0, 2] * x2
+            u1 += blocks[p, 1, 0] * x0 + blocks[p, 1, 1] * x1 + blocks[p, 1, 2] * x2
+            u2 += blocks[p, 2, 0] * x0 + blocks[p, 2, 1] * x1 + blocks[p, 2, 2] * x2
+        st, n0, n1, n2 = _local_update(law, mu, s, An, Ainv, ok, i, u0, u1, u2, r, omega, tol, max_newton)
+        if st == FAILED:
+            fails += 1
+        r[i, 0] = n0
+        r[i, 1] = n1
+        r[i, 2] = n2
+        if n0 != 0.0 or n1 != 0.0 or n2 != 0.0:
+            for p in range(p0, p1):
+                j = indices[p]
+                acc[j, 0] += blocks[p, 0, 0] * n0 + blocks[p, 1, 0] * n1 + blocks[p, 2, 0] * n2
+                acc[j, 1] += blocks[p, 0, 1] * n0 + blocks[p, 1, 1] * n1 + blocks[p, 2, 1] * n2
+                acc[j, 2] += blocks[p, 0, 2] * n0 + blocks[p, 1, 2] * n1 + blocks[p, 2, 2] * n2
+    return fails
+
+
+@njit(cache=True, fastmath=_FM)
+def sweep_matrix_free(
+    law, order, h_ptr, h_cols, h_vals, g_ptr, g_cols, g_vals, gamma2, b, mu, s, An, Ainv, ok, omega, r, v, tol, max_newton
+):
+    """One sweep keeping v = D H^T r: u_i = H_i v + 2 gamma r_i + b_i, then v += (H D)_i^T dr_i."""
+    fails = 0
+    for k in range(order.shape[0]):
+        i = order[k]
+        u0 = b[i, 0] + gamma2 * r[i, 0]
+        u1 = b[i, 1] + gamma2 * r[i, 1]
+        u2 = b[i, 2] + gamma2 * r[i, 2]
+        for p in range(h_ptr[i], h_ptr[i + 1]):
+            x = v[h_cols[p]]
+            u0 += h_vals[p, 0] * x
+            u1 += h_vals[p, 1] * x
+            u2 += h_vals[p, 2] * x
+        # c_i = u_i - W_ii r_i
+        A = _sym9(An, i)
+        si = s[i]
+        r0 = r[i, 0]
+        r1 = r[i, 1]
+        r2 = r[i, 2]
+        u0 -= si * (A[0] * r0 + A[1] * r1 + A[2] * r2)
+        u1 -= si * (A[3] * r0 + A[4] * r1 + A[5] * r2)
+        u2 -= si * (A[6] * r0 + A[7] * r1 + A[8] * r2)
+        st, n0, n1, n2 = _local_update(law, mu, s, An, Ainv, ok, i, u0, u1, u2, r, omega, tol, max_newton)
+        if st == FAILED:
+            fails += 1
+        d0 = n0 - r[i, 0]
+        d1 = n1 - r[i, 1]
+        d2 = n2 - r[i, 2]
+        if d0 != 0.0 or d1 != 0.0 or d2 != 0.0:
+            for p in range(g_ptr[i], g_ptr[i + 1]):
+                v[g_cols[p]] += g_vals[p, 0] * d0 + g_vals[p, 1] * d1 + g_vals[p, 2] * d2
+        r[i, 0] = n0
+        r[i, 1] = n1
+        r[i, 2] = n2
+    return fails
+
+
+@njit(cache=True, fastmath=_FM)
+def packed_apply(ptr, cols, vals, v, gamma2, r, b, out):
+    """out_i = H_i v + 2 gamma r_i + b_i (u from v = D H^T r)."""
+    for i in range(ptr.shape[0] - 1):
+        u0 = b[i, 0] + gamma2 * r[i, 0]
+        u1 = b[i, 1] + gamma2 * r[i, 1]
+        u2 = b[i, 2] + gamma2 * r[i, 2]
+        for p in range(ptr[i], ptr[i + 1]):
+            x = v[cols[p]]
+            u0 += vals[p, 0] * x
+            u1 += vals[p, 1] * x
+            u2 += vals[p, 2] * x
+        out[i, 0] = u0
+        out[i, 1] = u1
+        out[i, 2] = u2
+
+
+@njit(cache=True, fastmath=_FM)
+def packed_transpose_apply(ptr, cols, vals, r, n, out):
+    """out = sum_i (panel_i) r_i, i.e. M^T r for the packed (3m, n) matrix M."""
+    for k in range(n):
+        out[k] = 0.0
+    for i in range(ptr.shape[0] - 1):
+        d0 = r[i, 0]
+        d1 = r[i, 1]
+        d2 = r[i, 2]
+        for p in range(ptr[i], ptr[i + 1]):
+            out[cols[p]] += vals[p, 0] * d0 + vals[p, 1] * d1 + vals[p, 2] * d2
+
+
+# ----------------------------------------------------------------------------------------------
+# operators: the two ways to evaluate u_i during a sweep
+# ----------------------------------------------------------------------------------------------
+def _expand_order(order: np.ndarray) -> np.ndarray:
+    """Contact permutation -> permutation of the 3m rows."""
+    return (3 * order[:, None] + np.arange(3)[None, :]).reshape(-1)
+
+
+class AssembledOperator:
+    """Gauss-Seidel on W stored as its upper 3x3-block triangle (blocks.UpperBlockDelassus).
+
+    A sweep order other than 0..m-1 is realised by permuting the contacts once, so a sweep always runs
+    over rows 0..m-1 and reads every stored block exactly once.  ``order`` maps internal row k to the
+    caller's contact order[k]."""
+
+    form = "assembled"
+
+    def __init__(self, W: UpperBlockDelassus, b: np.ndarray, mu: np.ndarray, order: np.ndarray | None = None):
+        m = W.n_contacts
+        self.order = None if order is None else np.ascontiguousarray(order, dtype=np.int64)
+        b = np.asarray(b, dtype=np.float64).reshape(m, 3)
+        mu = np.broadcast_to(np.asarray(mu, dtype=np.float64), (m,))
+        if self.order is not None:
+            b = b[self.order]
+            mu = mu[self.order]
+        self.W = W
+        self.b = np.ascontiguousarray(b)
+        self.mu = np.ascontiguousarray(mu)
+        self.diag = W.diagonal()
+        self.s, self.An, self.Ainv, self.ok = normalize_diagonal(self.diag)
+        self.rho = _res.rho_from_diagonal(self.diag)
+        self.acc = np.zeros((m, 3))
+
+    @classmethod
+    def from_sparse(cls, W, b, mu, order: np.ndarray | None = None) -> "AssembledOperator":
+        """From a scipy sparse (3m, 3m) W of 3x3 blocks."""
+        if order is not None:
+            rows = _expand_order(np.asarray(order, dtype=np.int64))
+            W = sp.csr_matrix(W)[rows][:, rows]
+        return cls(UpperBlockDelassus.from_sparse(W), b, mu, order)
+
+    @classmethod
+    def from_problem(cls, problem, order: np.ndarray | None = None) -> "AssembledOperator":
+        """From a ContactProblem, assembling W's upper blocks strand by strand (blocks.assemble_upper)."""
+        source = problem
+        if order is not None:
+            rows = _expand_order(np.asarray(order, dtype=np.int64))
+            problem = type(problem)(problem.H[rows], problem.D_blocks, problem.dof_offsets, problem.gamma,
+                                    problem.b, problem.mu)  # only H is permuted here: __init__ permutes b, mu
+        op = cls(assemble_upper(problem), source.b, source.mu, order)
+        if "diag" not in source._cache:  # share the diagonal blocks (saves forming H D for rho)
+            diag = op.diag if order is None else np.empty_like(op.diag)
+            if order is not None:
+                diag[op.order] = op.diag
+            source._cache["diag"] = diag
+        return op
+
+    @property
+    def nbytes(self) -> int:
+        return self.W.nbytes + 2 * self.An.nbytes + self.acc.nbytes
+
+    def to_internal(self, r: np.ndarray) -> np.ndarray:
+        r = np.asarray(r, dtype=np.float64).reshape(-1, 3)
+        return np.array(r if self.order is None else r[self.order], order="C")
+
+    def to_external(self, r: np.ndarray) -> np.ndarray:
+        if self.order is None:
+            return r.reshape(-1).copy()
+        out = np.empty_like(r)
+        out[self.order] = r
+        return out.reshape(-1)
+
+    def sweep(self, law, omega, r, continuing=False, tol=LOCAL_TOL, max_newton=NEWTON_MAX_ITER) -> int:
+        W = self.W
+        return sweep_upper(
+            law, W.indptr, W.indices, W.blocks, self.b, self.mu, self.s, self.An, self.Ainv, self.ok,
+            float(omega), r, self.acc, tol, max_newton,
+        )
+
+    def velocity(self, r: np.ndarray) -> np.ndarray:
+        out = np.empty_like(r)
+        upper_block_matvec(self.W.indptr, self.W.indices, self.W.blocks, r, self.b, out)
+        return out
+
+
+class MatrixFreeOperator:
+    """Gauss-Seidel keeping v = D H^T r, from the factored ContactProblem (H and H D packed per
+    contact, blocks.PackedRows)."""
+
+    form = "matrix_free"
+
+    def __init__(self, problem, order: np.ndarray | None = None):
+        m = problem.n_contacts
+        self.order = np.arange(m, dtype=np.int64) if order is None else np.ascontiguousarray(order, dtype=np.int64)
+        self.H, self.G = problem.packed()  # H and H D (rows of H D = (D H_i^T)^T) per contact
+        self.n = problem.n_dofs
+        self.gamma2 = 2.0 * problem.gamma
+        self.b = np.ascontiguousarray(problem.b.reshape(-1, 3)).copy()
+        self.mu = problem.mu
+        self.diag = problem.diagonal_blocks()
+        self.s, self.An, self.Ainv, self.ok = normalize_diagonal(self.diag)
+        self.rho = problem.rho()
+        self.v = np.zeros(self.n)
+
+    @property
+    def nbytes(self) -> int:
+        return self.H.nbytes + self.G.nbytes + 2 * self.An.nbytes + self.v.nbytes
+
+    def to_internal(self, r: np.ndarray) -> np.ndarray:
+        return np.array(np.asarray(r, dtype=np.float64).reshape(-1, 3), order="C")
+
+    def to_external(self, r: np.ndarray) -> np.ndarray:
+        return r.reshape(-1).copy()
+
+    def _refresh_v(self, r: np.ndarray) -> None:
+        """v = D H^T r exactly (drops the drift of the incremental updates)."""
+        packed_transpose_apply(self.G.ptr, self.G.cols, self.G.vals, r, self.n, self.v)
+
+    def sweep(self, law, omega, r, continuing=False, tol=LOCAL_TOL, max_newton=NEWTON_MAX_ITER) -> int:
+        """continuing: r is the output of the previous sweep (or of velocity()), so v is already D H^T r."""
+        H, G = self.H, self.G
+        if not continuing:
+            self._refresh_v(r)
+        return sweep_matrix_free(
+            law, self.order, H.ptr, H.cols, H.vals, G.ptr, G.cols, G.vals, self.gamma2, self.b, self.mu,
+            self.s, self.An, self.Ainv, self.ok, float(omega), r, self.v, tol, max_newton,
+        )
+
+    def velocity(self, r: np.ndarray) -> np.ndarray:
+        self._refresh_v(r)
+        out = np.empty_like(r)
+        packed_apply(self.H.ptr, self.H.cols, self.H.vals, self.v, self.gamma2, r, self.b, out)
+        return out
+
+
+def contact_order(H: sp.spmatrix, how: str = "natural") -> np.ndarray | None:
+    """Sweep order.  'natural': 0..m-1 (None).  'columns': by the largest dof each contact touches (for
+    chain-like strands: by strand, then root to tip).  'columns_reversed': tip to root."""
+    m = H.shape[0] // 3
+    if how == "natural":
+        return None
+    H = sp.csr_matrix(H)
+    rowmax = np.full(H.shape[0], -1, dtype=np.int64)
+    nz = np.diff(H.indptr) > 0
+    if H.nnz:
+        rowmax[nz] = np.maximum.reduceat(H.indices, H.indptr[:-1][nz])
+    key = rowmax.reshape(m, 3).max(axis=1)
+    if how == "columns":
+        return np.argsort(key, kind="stable").astype(np.int64)
+    if how == "columns_reversed":
+        return np.argsort(-key, kind="stable").astype(np.int64)
+    raise ValueError(f"unknown order {how!r}")
+
+
+# ----------------------------------------------------------------------------------------------
+# driver
+# ----------------------------------------------------------------------------------------------
+@dataclass
+class GSOutcome:
+    r: np.ndarray  # (3m,) in the caller's contact order
+    residual: float
+    sweeps: int
+    converged: bool
+    local_failures: int
+    history: list = field(default_factory=list)  # [(sweep, residual, seconds)]
+    solve_s: float = 0.0
+    stalled: bool = False
+
+
+def run_gauss_seidel(
+    op,
+    law: str = "soc",
+    *,
+    tol: float = 1e-8,
+    max_sweeps: int = 2000,
+    r0: np.ndarray | None = None,
+    omega: float = 1.0,
+    anderson: int = 8,
+    anderson_start: int = 10,
+    check_every: int = 10,
+    scale: float | None = None,
+    time_limit: float | None = None,
+    stall_window: int | None = None,
+) -> GSOutcome:
+    """Sweep until residual <= tol (residual.py; checked every ``check_every`` sweeps) or max_sweeps.
+
+    op: AssembledOperator or MatrixFreeOperator.  anderson: memory of the Anderson acceleration of the
+    sweep map (0 = plain Gauss-Seidel), switched on after ``anderson_start`` plain sweeps; a step whose
+    fixed-point residual ||G(x) - x|| grows tenfold over the best seen restarts the history.
+    stall_window: stop (outcome.stalled) when the best residual of the last ``stall_window`` sweeps is not
+    half the best before them (Gauss-Seidel on the Coulomb law can cycle).
+    The returned r is always a Gauss-Seidel image (so each r_i solves its local problem exactly) and
+    its residual is measured exactly; non-convergence is reported, never hidden."""
+    code = law_code(law)
+    if omega != 1.0 and code != SOC:
+        raise ValueError("over-relaxation (omega != 1) is only valid for the SOC law")
+    if not (0.0 < omega < 2.0):
+        raise ValueError("omega must be in (0, 2)")
+    m = op.b.shape[0]
+    x = np.zeros((m, 3)) if r0 is None else op.to_internal(r0)
+    if scale is None:
+        scale = _res.residual_scale(op.b, op.rho)
+    mu, rho = op.mu, op.rho
+
+    def measure(r):
+        emax, _ = _res.residual_max_rms(code, r, op.velocity(r), mu, rho)
+        return emax / scale
+
+    t0 = time.perf_counter()
+    res = measure(x)
+    history = [(0, res, 0.0)]
+    g = x.copy()
+    sweeps = 0
+    fails = 0
+    stalled = False
+    if res <= tol or max_sweeps <= 0:
+        return GSOutcome(op.to_external(x), float(res), 0, bool(res <= tol), 0, history, time.perf_counter() - t0)
+    mixer = AndersonMixer(3 * m, anderson) if anderson > 0 else None
+    xf = x.reshape(-1)
+    gf = g.reshape(-1)
+    f = np.empty(3 * m)
+    best_f = np.inf
+    while sweeps < max_sweeps:
+        # g = G(x): one sweep from x
+        if mixer is not None and sweeps >= anderson_start:
+            if g is x:  # first accelerated step: split the buffers
+                g = x.copy()
+                gf = g.reshape(-1)
+            else:
+                g[:] = x
+        else:
+            g = x  # plain Gauss-Seidel updates in place
+            gf = g.reshape(-1)
+        fails += op.sweep(code, omega, g, continuing=g is x and sweeps > 0)
+        sweeps += 1
+        if sweeps % check_every == 0 or sweeps == max_sweeps:
+            res = measure(g)
+            history.append((sweeps, res, time.perf_counter() - t0))
+            if res <= tol or not math.isfinite(res):
+                break
+            if time_limit is not None and time.perf_counter() - t0 > time_limit:
+                break
+            if stall_window and sweeps >= 2 * stall_window:
+                recent = min(h[1] for h in history if h[0] > sweeps - stall_window)
+                before = min(h[1] for h in history if h[0] <= sweeps - stall_window)
+                if recent > 0.5 * before:
+                    stalled = True
+                    break
+        if mixer is None or sweeps < anderson_start:
+            x = g
+            xf = gf
+            continue
+        np.subtract(gf, xf, out=f)
+        fn = float(np.linalg.norm(f))
+        if fn > 10.0 * best_f:
+            mixer.reset()
+            best_f = fn
+        best_f = min(best_f, fn)
+        mixer.step(xf, f, xf)  # x <- Anderson mix of (x, G(x))
+    if history[-1][0] != sweeps:
+        res = measure(g)
+        history.append((sweeps, res, time.perf_counter() - t0))
+    solve_s = time.perf_counter() - t0
+    return GSOutcome(op.to_external(g), float(res), sweeps, bool(res <= tol), int(fails), history, solve_s, stalled)

@@ -1,0 +1,203 @@
+"""The factored contact problem  u = W r + b,  W = H D H^T + 2 gamma I.
+
+m contacts, each a 3-vector block [normal, tangent1, tangent2]; n degrees of freedom split in
+strands: strand s owns the columns dof_offsets[s]:dof_offsets[s+1] of H and one SPD block D_s of D.
+In the inverse problem D = K^{-2} (diagonal); in dynamics D = M^{-1} (dense per strand).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Sequence
+
+import numpy as np
+import scipy.sparse as sp
+
+from . import residual as _res
+from .blocks import PackedRows, diagonal_blocks, pack_HD, strand_blocks_apply
+
+
+@dataclass
+class ContactProblem:
+    """u = (H D H^T + 2 gamma I) r + b with per-contact friction coefficients mu.
+
+    H:           (3m, n) sparse contact Jacobian, rows 3i..3i+2 = contact i's [N, T1, T2] frame.
+    D_blocks:    one block per strand, either (n_s, n_s) dense SPD or (n_s,) a diagonal; or a single
+                 (n,) array, the diagonal of D over all dofs.
+    dof_offsets: (S + 1,) strand s owns dofs dof_offsets[s]:dof_offsets[s+1].
+    gamma:       regularisation, W gets + 2 gamma I.
+    b:           (3m,) free velocity (b = H v_free in dynamics, -H K^{-1} d in the inversion).
+    mu:          friction coefficient(s), scalar or (m,), >= 0.
+    """
+
+    H: sp.spmatrix
+    D_blocks: Sequence[np.ndarray] | np.ndarray
+    dof_offsets: np.ndarray
+    gamma: float
+    b: np.ndarray
+    mu: np.ndarray | float
+    _cache: dict = field(default_factory=dict, init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        self.H = sp.csr_matrix(self.H, dtype=np.float64)
+        self.H.sort_indices()
+        self.dof_offsets = np.ascontiguousarray(self.dof_offsets, dtype=np.int64)
+        n3m, n = self.H.shape
+        if n3m % 3:
+            raise ValueError(f"H has {n3m} rows, not a multiple of 3")
+        m = n3m // 3
+        if self.dof_offsets[0] != 0 or self.dof_offsets[-1] != n or np.any(np.diff(self.dof_offsets) < 0):
+            raise ValueError("dof_offsets must increase from 0 to H.shape[1]")
+        self.b = np.ascontiguousarray(self.b, dtype=np.float64).reshape(-1)
+        if self.b.shape[0] != n3m:
+            raise ValueError(f"b has {self.b.shape[0]} entries, expected {n3m}")
+        self.mu = np.ascontiguousarray(np.broadcast_to(np.asarray(self.mu, dtype=np.float64), (m,)))
+        if np.any(self.mu < 0) or not np.all(np.isfinite(self.mu)):
+            raise ValueError("friction coefficients must be finite and >= 0")
+        self.gamma = float(self.gamma)
+        if self.gamma < 0:
+            raise ValueError("gamma must be >= 0")
+        self.D_blocks = self._normalise_blocks(self.D_blocks)
+
+    def _normalise_blocks(self, blocks):
+        """Store D flat (self.D_data, D_ptr, D_is_diag: strand s's block is D_data[D_ptr[s]:D_ptr[s+1]],
+        n_s entries if diagonal, n_s^2 row-major if dense) and return the blocks as views into it."""
+        sizes = np.diff(self.dof_offsets)
+        if isinstance(blocks, np.ndarray) and blocks.ndim == 1:
+            if blocks.shape[0] != self.n_dofs:
+                raise ValueError(f"diagonal D has {blocks.shape[0]} entries, expected {self.n_dofs}")
+            blocks = [blocks[a:b] for a, b in zip(self.dof_offsets[:-1], self.dof_offsets[1:])]
+        blocks = [np.asarray(d, dtype=np.float64) for d in blocks]
+        if len(blocks) != len(sizes):
+            raise ValueError(f"{len(blocks)} D blocks for {len(sizes)} strands")
+        for s, (d, k) in enumerate(zip(blocks, sizes)):
+            if d.shape not in ((k,), (k, k)):
+                raise ValueError(f"D block {s} has shape {d.shape}, expected ({k},) or ({k}, {k})")
+        self.D_is_diag = np.array([d.ndim == 1 for d in blocks], dtype=np.bool_)
+        self.D_ptr = np.zeros(len(blocks) + 1, dtype=np.int64)
+        np.cumsum([d.size for d in blocks], out=self.D_ptr[1:])
+        self.D_data = np.concatenate([d.reshape(-1) for d in blocks]) if blocks else np.zeros(0)
+        return [
+            self.D_data[a:b] if diag else self.D_data[a:b].reshape(k, k)
+            for a, b, diag, k in zip(self.D_ptr[:-1], self.D_ptr[1:], self.D_is_diag, sizes)
+        ]
+
+    # ------------------------------------------------------------------ sizes
+    @property
+    def n_contacts(self) -> int:
+        return self.H.shape[0] // 3
+
+    @property
+    def n_dofs(self) -> int:
+        return self.H.shape[1]
+
+    @property
+    def n_strands(self) -> int:
+        return len(self.dof_offsets) - 1
+
+    @property
+    def is_diagonal(self) -> bool:
+        """True when every D block is a diagonal (the inverse problem, D = K^{-2})."""
+        return all(d.ndim == 1 for d in self.D_blocks)
+
+    # ------------------------------------------------------------------ operators
+    def D_matrix(self) -> sp.csr_matrix:
+        """D as a sparse block-diagonal matrix (n, n), built in one go (no per-block sparse objects)."""
+        if "D" not in self._cache:
+            rows, cols, vals = [], [], []
+            for o, d in zip(self.dof_offsets[:-1], self.D_blocks):
+                k = d.shape[0]
+                if d.ndim == 1:
+                    idx = o + np.arange(k)
+                    rows.append(idx)
+                    cols.append(idx)
+                else:
+                    rows.append(o + np.repeat(np.arange(k), k))
+                    cols.append(o + np.tile(np.arange(k), k))
+                vals.append(d.reshape(-1))
+            cat = (lambda a, dt: np.concatenate(a).astype(dt)) if rows else (lambda a, dt: np.zeros(0, dt))
+            self._cache["D"] = sp.csr_matrix(
+                (cat(vals, np.float64), (cat(rows, np.int64), cat(cols, np.int64))), shape=(self.n_dofs, self.n_dofs)
+            )
+        return self._cache["D"]
+
+    def HD(self) -> sp.csr_matrix:
+        """H D (3m, n): row 3i+a is (D H_i^T)^T, the dofs a unit reaction on contact i moves."""
+        if "HD" not in self._cache:
+            hd = (self.H @ self.D_matrix()).tocsr()
+            hd.sort_indices()
+            self._cache["HD"] = hd
+        return self._cache["HD"]
+
+    def D_apply(self, x: np.ndarray) -> np.ndarray:
+        """D x, strand block by strand block.  x: (n,)."""
+        out = np.empty(self.n_dofs)
+        strand_blocks_apply(self.D_data, self.D_ptr, self.D_is_diag, self.dof_offsets,
+                            np.ascontiguousarray(x, dtype=np.float64), out)
+        return out
+
+    def delassus_apply(self, r: np.ndarray) -> np.ndarray:
+        """W r = H (D (H^T r)) + 2 gamma r, matrix-free.  r: (3m,)."""
+        r = np.asarray(r, dtype=np.float64).reshape(-1)
+        return self.H @ self.D_apply(self.H.T @ r) + 2.0 * self.gamma * r
+
+    def velocity(self, r: np.ndarray) -> np.ndarray:
+        """u = W r + b (3m,)."""
+        return self.delassus_apply(r) + self.b
+
+    def assemble_W(self) -> sp.csr_matrix:
+        """W = H D H^T + 2 gamma I as a sparse (3m, 3m) matrix (small cases, tests)."""
+        W = (self.HD() @ self.H.T).tocsr() + 2.0 * self.gamma * sp.identity(self.H.shape[0], format="csr")
+        W.sort_indices()
+        return W
+
+    def packed_H(self) -> PackedRows:
+        """H regrouped per contact (blocks.PackedRows), cached."""
+        if "packed_H" not in self._cache:
+            self._cache["packed_H"] = PackedRows.from_sparse(self.H)
+        return self._cache["packed_H"]
+
+    def packed(self):
+        """(H, H D) regrouped per contact (blocks.PackedRows, H D computed panel by panel), cached."""
+        if "packed" not in self._cache:
+            H = self.packed_H()
+            self._cache["packed"] = (H, pack_HD(H, self.dof_offsets, self.D_data, self.D_ptr, self.D_is_diag))
+        return self._cache["packed"]
+
+    def diagonal_blocks(self) -> np.ndarray:
+        """The (m, 3, 3) diagonal blocks W_ii = H_i D H_i^T + 2 gamma I."""
+        if "diag" not in self._cache:
+            H, G = self.packed()
+            self._cache["diag"] = diagonal_blocks(H, G, self.gamma)
+        return self._cache["diag"]
+
+    # ------------------------------------------------------------------ measures
+    def rho(self) -> np.ndarray:
+        """rho_i = 3 / trace(W_ii), the per-contact step of the natural map."""
+        if "rho" not in self._cache:
+            self._cache["rho"] = _res.rho_from_diagonal(self.diagonal_blocks())
+        return self._cache["rho"]
+
+    def residual_scale(self) -> float:
+        """max_i rho_i ||b_i|| (see residual.py)."""
+        return _res.residual_scale(self.b, self.rho())
+
+    def objective(self, r: np.ndarray) -> float:
+        """1/2 r^T W r + b^T r."""
+        r = np.asarray(r, dtype=np.float64).reshape(-1)
+        return float(0.5 * r @ self.delassus_apply(r) + self.b @ r)
+
+    def cone_violation(self, r: np.ndarray) -> float:
+        """max over contacts of max(0, ||r_T|| - mu r_N)."""
+        return _res.cone_violation(r, self.mu)
+
+    def residual(self, r: np.ndarray, law: str = "soc", norm: str = "max", u: np.ndarray | None = None) -> float:
+        """max_i ||r_i - P_K(r_i - rho_i u_eff_i)|| / max_i rho_i ||b_i||  (norm='max'; 'rms' also).
+        See residual.py for the definition; 1e-8 means converged."""
+        u = self.velocity(r) if u is None else u
+        return _res.residual(r, u, self.mu, self.rho(), self.residual_scale(), law=law, norm=norm)
+
+    def bogus_error(self, r: np.ndarray, law: str = "soc") -> float:
+        """so-bogus's stopping figure (residual.py), for comparisons with that library."""
+        tr = np.einsum("kii->k", self.diagonal_blocks())
+        return _res.bogus_error(r, self.velocity(r), self.mu, tr, law=law)

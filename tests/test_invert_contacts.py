@@ -1,0 +1,157 @@
+"""Inversion with frictional contact, checked independently.
+
+- the optimum against a cvxpy formulation written here from the lecture's statement;
+- the KKT conditions of the SOCQP (r in the cone, u = W r + b in the dual cone, r . u = 0);
+- physics: a strand draped over a sphere needs a non-zero normal force and becomes an exact
+  equilibrium; a strand touching nothing gets r = 0 and the isolated rest curvatures.
+"""
+
+import cvxpy as cp
+import numpy as np
+import pytest
+import trimesh
+
+from groomtool import Groom, Material
+from groomtool.contact.jacobian import contact_jacobian
+from groomtool.invert import InversionParams, invert_groom, isolated_rest_curvatures, rest_curvature_guess
+from groomtool.rods import superhelix as sh
+
+MAT = Material()
+SPHERE_R = 0.08
+
+
+def draped_strand(angle0, lift, n=80, length=0.3, azimuth=0.0):
+    """A strand rooted on a sphere of radius 8 cm, lying on it (axis ``lift`` above the surface) over
+    the top and down the side, then hanging straight down. y-up."""
+    s = np.linspace(0, length, n)
+    R = SPHERE_R + lift
+    arc_end = (np.pi / 2 - angle0) * R  # from the root angle down to the equator
+    pts = []
+    for si in s:
+        if si <= arc_end:
+            a = angle0 + si / R  # polar angle from +y
+            p = np.array([R * np.sin(a), R * np.cos(a), 0.0])
+        else:
+            p = np.array([R, -(si - arc_end), 0.0])
+        pts.append(p)
+    pts = np.array(pts)
+    c, s_ = np.cos(azimuth), np.sin(azimuth)
+    rot = np.array([[c, 0, s_], [0, 1, 0], [-s_, 0, c]])
+    return pts @ rot.T
+
+
+@pytest.fixture(scope="module")
+def sphere():
+    return trimesh.creation.icosphere(subdivisions=4, radius=SPHERE_R)
+
+
+def _params(**kw):
+    base = dict(material=MAT, tolerance=2e-4, contacts="all", contact_radius=5e-4, solver="clarabel",
+                solver_tolerance=1e-10, discrete_rest_data=False)
+    base.update(kw)
+    return InversionParams(**base)
+
+
+@pytest.fixture(scope="module")
+def draped(sphere):
+    strands = [draped_strand(0.3, 2e-4, azimuth=a) for a in (0.0, 0.5, 1.0)]
+    # a fourth strand crossing over the first, lying on it
+    strands.append(draped_strand(0.35, 2e-4 + 6e-4, azimuth=0.02, length=0.25))
+    groom = Groom.from_strands(strands, source="draped")
+    return groom, invert_groom(groom, head=sphere, params=_params())
+
+
+def test_draped_strands_find_head_and_strand_contacts(draped):
+    _, res = draped
+    rep = res.report
+    assert rep["contacts"]["strand_head"] > 0
+    assert rep["contacts"]["strand_strand"] > 0
+    assert rep["solve"]["status"] == "solved"
+    assert rep["solve"]["cone_violation"] < 1e-8 * MAT.linear_density * 9.81
+    assert rep["equilibrium"]["max_relative_residual"] < 1e-8
+
+
+def test_strand_on_a_sphere_needs_a_normal_force(draped):
+    _, res = draped
+    head = np.asarray(res.contacts.strand_b) < 0
+    assert res.forces[head, 0].max() > 1e-3 * MAT.linear_density * 9.81 * 0.3
+
+
+def _independent_cvxpy(res, gamma_abs):
+    """min 1/2 ||q - K^-1 (H^T r + F) - q0_guess||^2 + gamma_abs ||r||^2, r_i in {||r_T|| <= mu r_N}."""
+    helix, mat = res.helix, res.material
+    kin = sh.kinematics(helix)
+    H = contact_jacobian(helix, res.contacts, kin).toarray()
+    K = helix.to_flat(sh.stiffness(helix, mat.stiffness_diag)).ravel()
+    F = helix.to_flat(sh.gravity_force(helix, mat.linear_density, res.gravity, kin)).ravel()
+    q = helix.to_flat(helix.curvatures).ravel()
+    q0g = helix.to_flat(rest_curvature_guess(helix, res.params.guess)).ravel()
+    m = H.shape[0] // 3
+    # unknown x = r / f, f chosen so that A = K^-1 H^T f has unit columns on average: same argmin
+    f = 1.0 / np.sqrt(np.mean(np.sum((H / K) ** 2, axis=1)))
+    A = H.T * (f / K)[:, None]
+    x = cp.Variable(3 * m)
+    resid = q - F / K - q0g - A @ x
+    scale = float(np.sum((F / K) ** 2))
+    obj = 0.5 * cp.sum_squares(resid) / scale + gamma_abs * f * f * cp.sum_squares(x) / scale
+    cons = [cp.SOC(mat.friction * x[3 * i], x[3 * i + 1:3 * i + 3]) for i in range(m)]
+    prob = cp.Problem(cp.Minimize(obj), cons)
+    prob.solve(solver=cp.CLARABEL, tol_gap_abs=1e-12, tol_gap_rel=1e-12, tol_feas=1e-12)
+    return (x.value * f).reshape(m, 3), prob.value * scale
+
+
+@pytest.mark.parametrize("solver", ["clarabel", "gs"])
+def test_optimum_matches_an_independent_cvxpy_formulation(draped, sphere, solver):
+    groom, res0 = draped
+    res = res0 if solver == "clarabel" else invert_groom(groom, head=sphere, params=_params(solver="gs"))
+    gamma_abs = res.params.gamma * _w_scale(res)
+    r_ref, obj_ref = _independent_cvxpy(res, gamma_abs)
+    obj = res.report["solve"]["objective"]
+    assert obj == pytest.approx(obj_ref, rel=1e-7)
+
+
+def _w_scale(res):
+    helix, mat = res.helix, res.material
+    H = contact_jacobian(helix, res.contacts).toarray()
+    K = helix.to_flat(sh.stiffness(helix, mat.stiffness_diag)).ravel()
+    return float(np.mean(np.sum((H / K) ** 2, axis=1)))
+
+
+def test_kkt_conditions(draped):
+    _, res = draped
+    helix, mat = res.helix, res.material
+    H = contact_jacobian(helix, res.contacts).toarray()
+    K = helix.to_flat(sh.stiffness(helix, mat.stiffness_diag)).ravel()
+    F = helix.to_flat(sh.gravity_force(helix, mat.linear_density, res.gravity)).ravel()
+    q = helix.to_flat(helix.curvatures).ravel()
+    d = q - F / K - q  # guess "current"
+    gamma_abs = res.params.gamma * _w_scale(res)
+    W = (H / K**2) @ H.T + 2 * gamma_abs * np.eye(len(H))
+    b = -(H / K) @ d
+    r = res.forces.ravel()
+    u = (W @ r + b).reshape(-1, 3)
+    r = r.reshape(-1, 3)
+    mu = mat.friction
+    scale_u = np.abs(b).max()
+    scale_r = np.abs(r).max()
+    assert np.all(np.linalg.norm(r[:, 1:], axis=1) <= mu * r[:, 0] + 1e-9 * scale_r)  # primal cone
+    assert np.all(mu * np.linalg.norm(u[:, 1:], axis=1) <= u[:, 0] + 1e-6 * scale_u)  # dual cone K_{1/mu}
+    assert np.all(np.abs(np.sum(r * u, axis=1)) <= 1e-6 * scale_u * scale_r)  # complementarity
+
+
+def test_strand_touching_nothing_gets_the_isolated_rest_curvatures(sphere):
+    far = draped_strand(0.3, 2e-4) + np.array([0.0, 0.0, 0.5])  # half a metre away from the sphere
+    near = draped_strand(0.3, 2e-4)
+    groom = Groom.from_strands([near, far], source="far")
+    res = invert_groom(groom, head=sphere, params=_params(contacts="head"))
+    assert np.all(np.asarray(res.contacts.strand_a) == 0)  # only the draped strand touches
+    iso = isolated_rest_curvatures(res.helix, MAT, res.gravity)
+    assert np.allclose(res.rest_curvatures[1], iso[1], rtol=0, atol=1e-12 * np.abs(iso[1]).max())
+    assert not np.allclose(res.rest_curvatures[0], iso[0])
+
+
+def test_no_contact_mode_is_the_isolated_inversion(sphere):
+    groom = Groom.from_strands([draped_strand(0.3, 2e-4)], source="one")
+    res = invert_groom(groom, head=sphere, params=_params(contacts="none"))
+    assert res.contacts is None and "contacts" not in res.report
+    assert np.allclose(res.rest_curvatures, isolated_rest_curvatures(res.helix, MAT, res.gravity))
