@@ -425,6 +425,18 @@ def _snap_groom_roots(groom: Groom, head, snap_roots):
     return moved, gaps
 
 
+AUTO_CLARABEL_MAX_CONTACTS = 2000
+
+
+def choose_solver(solver: str, n_contacts: int) -> str:
+    """``auto``: clarabel (interior point, exact, robust to the redundant contacts of a strand lying
+    on a head) up to 2,000 contacts, where it takes about a second (bench/results/solvers.md); the
+    Gauss-Seidel solver beyond, where clarabel's factorisations stop scaling."""
+    if solver != "auto":
+        return solver
+    return "clarabel" if n_contacts <= AUTO_CLARABEL_MAX_CONTACTS else "gs"
+
+
 def _solve(problem: InverseProblem, helix: sh.SuperHelix, params: InversionParams) -> dict:
     """Solve the scaled SOCQP with the chosen solver; forces returned in newtons (m, 3)."""
     from .solvers import ContactProblem, solve_contact_problem
@@ -434,8 +446,8 @@ def _solve(problem: InverseProblem, helix: sh.SuperHelix, params: InversionParam
     blocks = [np.diag(inv_k[a:b] ** 2 / problem.w_scale) for a, b in zip(offsets[:-1], offsets[1:])]
     cp = ContactProblem(H=problem.H, D_blocks=blocks, dof_offsets=offsets, gamma=problem.gamma,
                         b=problem.b, mu=problem.mu)
-    res = solve_contact_problem(cp, law="soc", method=params.solver, tol=params.solver_tolerance,
-                                max_iter=params.max_iterations)
+    res = solve_contact_problem(cp, law="soc", method=choose_solver(params.solver, len(problem.mu)),
+                                tol=params.solver_tolerance, max_iter=params.max_iterations)
     forces = np.asarray(res.r).reshape(-1, 3) * problem.f_scale
     status = "solved" if res.converged else str(res.status)
     return {"forces": forces, "solver": res.method, "status": status, "converged": bool(res.converged),

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import export_cmd, view_cmd
+from . import export_cmd, simulate_cmd, view_cmd
 
 EXIT_OK, EXIT_USER_ERROR, EXIT_NOT_CONVERGED = 0, 1, 2
 DEFAULT_TOLERANCE_M = 5e-4  # the fit tolerance when --tolerance is not given, whatever --units says
@@ -102,6 +102,7 @@ def build_parser() -> argparse.ArgumentParser:
                           formatter_class=argparse.RawDescriptionHelpFormatter)
     info.add_argument("input")
     _add_input_options(info)
+    simulate_cmd.add_parsers(sub)
     view_cmd.add_parser(sub)
     export_cmd.add_parser(sub)
     return parser
@@ -214,7 +215,8 @@ def cmd_example(args) -> int:
 
 
 COMMANDS = {"invert": cmd_invert, "info": cmd_info, "example": cmd_example,
-            "view": view_cmd.cmd_view, "export": export_cmd.cmd_export}
+            "view": view_cmd.cmd_view, "export": export_cmd.cmd_export,
+            "simulate": simulate_cmd.cmd_simulate, "check": simulate_cmd.cmd_check}
 
 
 def main(argv=None) -> int:

@@ -1,0 +1,228 @@
+"""Benchmark of the forward simulator and of ``groom check`` (the issue's done-criteria).
+
+1. USC-HairSalon styles (../shared/data/usc, metres, y up) inverted with all contacts against the USC
+   head, then ``check_groom``: 1 s simulated at dt = 1/240 from the groomed shape, inverted vs naive
+   (q0 = q).  Criteria: inverted max tip drift < 1 mm and < 2 % of the naive one; curly styles keep
+   their curvature profile within 1 %.
+2. Time per step of a 1,000-strand groom with contacts: the bundled example groom (example_groom(1000),
+   its ellipsoidal head), inverted with all contacts, simulated from rest (inverted, warm-started from
+   the inversion's forces as groom check does) and sagging (naive).  The example strands lie 0.24 mm
+   above the head (a fibre radius plus 0.2 mm), so the contact radius is 0.3 mm for them to rest on it.
+
+    python bench/bench_simulate.py [--quick] [--strands 1000] [--steps 5] [--styles 00002 00014 ...]
+
+Prints a table and writes bench/results/simulate.md and simulate.json.  BLAS is pinned to one thread
+(the per-strand systems are 30-200 dofs: threads only add contention).
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import platform  # noqa: E402
+import sys  # noqa: E402
+import tempfile  # noqa: E402
+import time  # noqa: E402
+import warnings  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+DATA = ROOT.parent / "shared" / "data" / "usc"
+RESULTS = ROOT / "bench" / "results"
+
+# styles whose strands are all stable in isolation (stiffness ratio < 1 at E = 3 GPa), straight and curly,
+# then two long styles with strands that only contacts could hold (reported, not counted)
+STYLES = ["00002", "00004", "00042", "00092", "00098", "00206", "00014", "00027", "00033", "00144", "00187",
+          "00218", "00254"]
+LONG_STYLES = ["00001", "00003"]
+
+
+def hair_classes() -> dict:
+    out = {}
+    path = DATA / "hair_classes.txt"
+    if path.is_file():
+        for line in path.read_text().split("\n"):
+            if line.strip():
+                key, cls = line.split()
+                out.setdefault(key.replace("strands", ""), []).append(cls)
+    return out
+
+
+def run_style(style: str, classes: dict, seconds: float, dt: float) -> dict:
+    from groomtool.check import check_groom
+    from groomtool.invert import InversionParams, invert_groom
+    from groomtool.io import load_groom, load_head
+
+    groom = load_groom(DATA / "cstrands" / f"cstrands{style}.data")
+    head = load_head(DATA / "head_model.obj")
+    t0 = time.perf_counter()
+    result = invert_groom(groom, head, InversionParams(contacts="all"))
+    invert_s = time.perf_counter() - t0
+    with tempfile.TemporaryDirectory() as tmp:
+        result.save(tmp)
+        report = check_groom(tmp, seconds=seconds, dt=dt)
+    inv, nai = report["inverted"], report["naive"]
+    kinds = classes.get(style, ["?"])
+    return {
+        "style": style, "class": "/".join(kinds), "curly": any("curly" in k for k in kinds),
+        "strands": report["strands"], "elements": report["elements"],
+        "max_length_m": float(groom.lengths().max()),
+        "inversion_contacts": result.report.get("contacts", {}).get("total", 0),
+        "unstable_in_isolation": int(result.report["stability"]["unstable_strands"]),
+        "inverted_max_tip_drift_m": inv["max_tip_drift_m"], "inverted_mean_tip_drift_m": inv["mean_tip_drift_m"],
+        "naive_max_tip_drift_m": nai["max_tip_drift_m"], "naive_mean_tip_drift_m": nai["mean_tip_drift_m"],
+        "drift_ratio": report["drift_ratio"],
+        "inverted_curvature_change": inv["curvature_profile_change"]["max"],
+        "naive_curvature_change": nai["curvature_profile_change"]["max"],
+        "sim_contacts_per_step": inv["contacts_per_step"]["mean"],
+        "inverted_ms_per_step": 1e3 * inv["timings_s"]["per_step"], "naive_ms_per_step": 1e3 * nai["timings_s"]["per_step"],
+        "solver_failures": inv["solver"]["failures"] + nai["solver"]["failures"],
+        "invert_s": invert_s,
+    }
+
+
+def criteria(row: dict) -> dict:
+    ok_drift = row["inverted_max_tip_drift_m"] < 1e-3 and row["inverted_max_tip_drift_m"] < 0.02 * row["naive_max_tip_drift_m"]
+    ok_curl = (not row["curly"]) or row["inverted_curvature_change"] < 0.01
+    return {"drift_ok": bool(ok_drift), "curls_ok": bool(ok_curl)}
+
+
+EXAMPLE_CONTACT_RADIUS = 3e-4  # m: covers the example groom's 0.24 mm lift above its head
+
+
+def time_big_groom(n_strands: int, steps: int) -> dict:
+    """Per-step time of an n-strand groom with all contacts: inverted (at rest) and naive (sagging)."""
+    from groomtool.examples import example_groom
+    from groomtool.invert import InversionParams, SolverFailure, invert_groom
+    from groomtool.simulate import SimulationParams, Simulator
+
+    groom, head = example_groom(n_strands)
+    t0 = time.perf_counter()
+    out = {"groom": f"example_groom({n_strands})", "strands": n_strands}
+    params = InversionParams(contacts="all", contact_radius=EXAMPLE_CONTACT_RADIUS, solver_tolerance=1e-5)
+    try:  # the SOCQP's optimality to 1e-5: the equilibrium is exact for whatever forces it returns
+        result = invert_groom(groom, head, params)
+        out["inversion"] = {"converged": True, "contacts": result.report["contacts"]["total"],
+                            "solve": {k: result.report["solve"][k] for k in ("solver", "iterations", "residual")},
+                            "equilibrium_max_relative_residual": result.report["equilibrium"]["max_relative_residual"]}
+        rest = result.rest_curvatures
+    except SolverFailure as exc:  # measure the stepping anyway, from the isolated inversion
+        out["inversion"] = {"converged": False, "message": str(exc)}
+        result = invert_groom(groom, head, InversionParams(contacts="none"))
+        rest = result.rest_curvatures
+    warm = (result.contacts, result.forces) if result.contacts is not None else None
+    out["invert_s"] = time.perf_counter() - t0
+    helix = result.helix
+    out["elements"] = int(helix.n_elements.sum())
+    out["max_elements"] = int(helix.max_elements)
+    material = result.material
+    for name, q0 in (("inverted", rest), ("naive", helix.curvatures.copy())):
+        sim = Simulator(helix, q0, material, result.gravity, head=head, warm_start=warm if name == "inverted" else None,
+                        params=SimulationParams(dt=1 / 240, contacts="all", contact_radius=EXAMPLE_CONTACT_RADIUS))
+        tips0 = sim.tips()
+        per_step, contacts, iters = [], [], []
+        for _ in range(steps):
+            t = time.perf_counter()
+            system = sim.step()
+            per_step.append(time.perf_counter() - t)
+            contacts.append(system.stats.get("contacts", 0))
+            iters.append(system.stats.get("solver_iterations", 0))
+        stages = {k: v / steps for k, v in sim.timings.items()}
+        out[name] = {"s_per_step_mean": float(np.mean(per_step)), "s_per_step_first": float(per_step[0]),
+                     "s_per_step_last": float(per_step[-1]), "contacts_mean": float(np.mean(contacts)),
+                     "solver_iterations_mean": float(np.mean(iters)), "stages_s_per_step": stages,
+                     "modified_step_matrices_per_step": sim.modified_strands / steps,
+                     "max_tip_drift_m": float(np.linalg.norm(sim.tips() - tips0, axis=1).max())}
+    return out
+
+
+def markdown(rows, big, meta) -> str:
+    lines = ["# groom check and forward simulation: benchmark", "",
+             f"{meta['date']} on {meta['machine']} ({meta['cpus']} CPUs), Python {meta['python']}; "
+             f"{meta['seconds']:g} s simulated at dt = 1/{round(1 / meta['dt'])} s; material: E = 3 GPa, r = 40 um, "
+             "rho = 1300 kg/m^3, mu = 0.3; contact radius 50 um; inversion with contacts all against the USC head.", "",
+             "## USC styles: inverted vs naive after 1 s", "",
+             "| style | class | strands | elements | longest (m) | contacts (inv.) | unstable alone | inverted max drift (m) | "
+             "naive max drift (m) | ratio | curvature change inv. / naive | ms/step inv. / naive | criteria |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        c = criteria(r)
+        verdict = "ok" if c["drift_ok"] and c["curls_ok"] else ("drift FAIL" if not c["drift_ok"] else "curls FAIL")
+        lines.append(
+            f"| {r['style']} | {r['class']} | {r['strands']} | {r['elements']} | {r['max_length_m']:.3f} | "
+            f"{r['inversion_contacts']} | {r['unstable_in_isolation']} | {r['inverted_max_tip_drift_m']:.2e} | "
+            f"{r['naive_max_tip_drift_m']:.2e} | {r['drift_ratio']:.1e} | "
+            f"{100 * r['inverted_curvature_change']:.2e} % / {100 * r['naive_curvature_change']:.1f} % | "
+            f"{r['inverted_ms_per_step']:.0f} / {r['naive_ms_per_step']:.0f} | {verdict} |")
+    if big:
+        lines += ["", f"## Time per step: {big['groom']} with all contacts (contact radius 0.3 mm)", "",
+                  f"{big['strands']} strands, {big['elements']} elements (up to {big['max_elements']} per strand); "
+                  f"inversion: {json.dumps(big['inversion'])}", "",
+                  "| run | s/step (mean) | first / last | contacts | GS sweeps | modified step matrices | stages (s/step) |",
+                  "|---|---|---|---|---|---|---|"]
+        for name in ("inverted", "naive"):
+            b = big[name]
+            stages = ", ".join(f"{k} {v:.2f}" for k, v in b["stages_s_per_step"].items())
+            lines.append(f"| {name} | {b['s_per_step_mean']:.2f} | {b['s_per_step_first']:.2f} / {b['s_per_step_last']:.2f} | "
+                         f"{b['contacts_mean']:.0f} | {b['solver_iterations_mean']:.0f} | "
+                         f"{b['modified_step_matrices_per_step']:.0f} | {stages} |")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--quick", action="store_true", help="three styles, 100 strands for the timing")
+    ap.add_argument("--styles", nargs="*", default=None)
+    ap.add_argument("--strands", type=int, default=1000)
+    ap.add_argument("--steps", type=int, default=5)
+    ap.add_argument("--seconds", type=float, default=1.0)
+    ap.add_argument("--dt", type=float, default=1 / 240)
+    ap.add_argument("--no-long", action="store_true", help="skip the long styles with isolation-unstable strands")
+    args = ap.parse_args(argv)
+    warnings.simplefilter("ignore")
+    if not DATA.is_dir():
+        print(f"USC data not found at {DATA}", file=sys.stderr)
+        return 1
+    styles = args.styles or (STYLES[:1] + STYLES[6:8] if args.quick else STYLES + ([] if args.no_long else LONG_STYLES))
+    classes = hair_classes()
+    rows = []
+    for style in styles:
+        t = time.perf_counter()
+        row = run_style(style, classes, args.seconds, args.dt)
+        rows.append(row)
+        c = criteria(row)
+        print(f"{style} {row['class']:<14} inverted {row['inverted_max_tip_drift_m']:.2e} m  naive "
+              f"{row['naive_max_tip_drift_m']:.2e} m  ratio {row['drift_ratio']:.1e}  curv {row['inverted_curvature_change']:.1e}"
+              f"  unstable {row['unstable_in_isolation']}  {'ok' if all(c.values()) else 'FAIL'}  ({time.perf_counter() - t:.0f} s)",
+              flush=True)
+    n_big = 100 if args.quick else args.strands
+    big = time_big_groom(n_big, args.steps) if n_big else None
+    if big:
+        for name in ("inverted", "naive"):
+            print(f"{big['groom']} {name}: {big[name]['s_per_step_mean']:.2f} s/step, {big[name]['contacts_mean']:.0f} contacts",
+                  flush=True)
+    meta = {"date": time.strftime("%Y-%m-%d"), "machine": platform.machine(), "cpus": os.cpu_count(),
+            "python": platform.python_version(), "seconds": args.seconds, "dt": args.dt}
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    stable = [r for r in rows if r["style"] not in LONG_STYLES]
+    summary = {"styles_checked": len(stable),
+               "styles_passing": sum(all(criteria(r).values()) for r in stable),
+               "max_inverted_drift_m": max((r["inverted_max_tip_drift_m"] for r in stable), default=0.0),
+               "max_drift_ratio": max((r["drift_ratio"] for r in stable), default=0.0),
+               "max_curly_curvature_change": max((r["inverted_curvature_change"] for r in stable if r["curly"]), default=0.0)}
+    (RESULTS / "simulate.json").write_text(json.dumps({"meta": meta, "summary": summary, "styles": rows, "big": big},
+                                                      indent=2, default=float) + "\n")
+    (RESULTS / "simulate.md").write_text(markdown(rows, big, meta))
+    print(json.dumps(summary, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
