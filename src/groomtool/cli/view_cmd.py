@@ -53,7 +53,7 @@ def cmd_view(args) -> int:
     try:
         from ..viz import viewer
     except ImportError as exc:
-        raise GroomError(f"groom view needs pyvista and vtk (pip install 'groomtool[viz]'): {exc}") from exc
+        raise GroomError(f"groom view needs pyvista and vtk (pip install pyvista vtk): {exc}") from exc
     head = None
     if args.head:
         from ..io import load_head

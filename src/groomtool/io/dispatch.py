@@ -21,7 +21,7 @@ def _read_usd(path, scale, up, repair):
         from . import usd
     except ModuleNotFoundError as exc:
         if exc.name and (exc.name == "pxr" or exc.name.startswith("pxr.") or exc.name == f"{__package__}.usd"):
-            raise GroomError(f"{path}: USD support needs usd-core (pip install 'groomtool[usd]')") from exc
+            raise GroomError(f"{path}: USD support needs usd-core (pip install usd-core)") from exc
         raise
     return usd.read_usd(path, scale=scale, up=up, repair=repair)
 
