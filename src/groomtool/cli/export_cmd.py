@@ -96,6 +96,6 @@ def cmd_export(args) -> int:
         written = export_formats(source, outdir, formats, shape=args.shape, per_element=args.samples,
                                  output=args.output)
     except ImportError as exc:
-        raise GroomError(f"this format needs an optional dependency (pip install 'groomtool[usd,viz]'): {exc}") from exc
+        raise GroomError(f"this format needs an optional dependency (pip install usd-core pyvista vtk): {exc}") from exc
     print("groom export: wrote " + ", ".join(str(p) for p in written))
     return 0
