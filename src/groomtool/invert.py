@@ -346,6 +346,12 @@ def invert_groom(groom: Groom, head=None, params: InversionParams | None = None,
         "note": ("isolated-strand criterion; strands longer than the Greenhill length "
                  f"{material.greenhill_length():.3f} m rising from the scalp are only held by contact"),
     }
+    if contacts is not None and len(unstable):
+        with timer.stage("stability_with_contacts"):
+            held = contact_held_unstable(helix, material, gravity, contacts, forces, H, unstable)
+        report["stability"]["unstable_with_contacts"] = int(np.count_nonzero(held >= 1.0))
+        report["stability"]["criterion_with_contacts"] = (
+            "Hessian restricted to motions that keep every contact point with a positive normal force fixed")
     report["timings_s"] = dict(timer.stages)
     report["timings_s"]["total"] = timer.total()
     report["parameters"] = {
@@ -399,6 +405,24 @@ def discrete_rest_data(groom: Groom, helix, material: Material, gravity, contact
     report = {"segments": "input vertices" if segments is None else int(segments),
               "cosserat_residual": cos["cosserat_residual"], "der_residual": der["der_residual"]}
     return arrays, report
+
+
+def contact_held_unstable(helix, material: Material, gravity, contacts, forces, H, strands) -> np.ndarray:
+    """The stiffness ratio of each listed strand when its active contacts (r_N > 0) hold it:
+    the Hessian K - dF/dq restricted to motions with H_i dq = 0 for those contacts."""
+    from .stability import contact_held_ratio
+
+    active = np.flatnonzero(forces[:, 0] > 0)
+    owners = [np.asarray(contacts.strand_a)[active], np.asarray(contacts.strand_b)[active]]
+    cols = 3 * helix.flat_offsets()
+    H = H.tocsr()
+    out = np.empty(len(strands))
+    for k, s in enumerate(strands):
+        mine = active[(owners[0] == s) | (owners[1] == s)]
+        rows = (3 * mine[:, None] + np.arange(3)).ravel()
+        blocked = H[rows][:, cols[s]:cols[s + 1]].toarray() if len(rows) else None
+        out[k] = contact_held_ratio(helix, s, material.stiffness_diag, material.linear_density, gravity, blocked)
+    return out
 
 
 def stiffness_ratios_progress(helix, material, gravity, quiet):

@@ -191,6 +191,9 @@ def summary(result, written) -> str:
     if st["unstable_strands"]:
         lines.append(f"  stability    {st['unstable_strands']} strands unstable in isolation: Young's modulus would "
                      f"have to be {st['required_young_modulus_factor']:.2f}x larger for all to stand alone")
+        if "unstable_with_contacts" in st:
+            lines.append(f"               {st['unstable_with_contacts']} of them still unstable when their active contacts "
+                         "hold them (a simulation will move them)")
     else:
         lines.append("  stability    every strand is a stable equilibrium on its own")
     if "roots" in r:
