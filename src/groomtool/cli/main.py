@@ -191,9 +191,11 @@ def summary(result, written) -> str:
     if st["unstable_strands"]:
         lines.append(f"  stability    {st['unstable_strands']} strands unstable in isolation: Young's modulus would "
                      f"have to be {st['required_young_modulus_factor']:.2f}x larger for all to stand alone")
-        if "unstable_with_contacts" in st:
+        if st.get("unstable_with_contacts"):
             lines.append(f"               {st['unstable_with_contacts']} of them still unstable when their active contacts "
-                         "hold them (a simulation will move them)")
+                         "hold them: a simulation will move them")
+        elif "unstable_with_contacts" in st:
+            lines.append("               all of them are stable once their active contacts hold them")
     else:
         lines.append("  stability    every strand is a stable equilibrium on its own")
     if "roots" in r:
