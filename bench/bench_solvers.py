@@ -176,12 +176,17 @@ def main():
     ap.add_argument("--from-json", action="store_true", help="rewrite solvers.md from solvers.json")
     ap.add_argument("--target", type=int, default=0, metavar="N",
                     help="only re-measure the 30k target row N times and merge it into solvers.json")
+    ap.add_argument("--add", action="append", default=[], metavar="SPEC",
+                    help="run one more spec (JSON) and append it to solvers.json")
     args = ap.parse_args()
     if args.child:
         print(json.dumps(run_child(json.loads(args.child))))
         return
-    if args.from_json or args.target:
+    if args.from_json or args.target or args.add:
         data = json.loads((RESULTS / "solvers.json").read_text())
+        for spec in args.add:
+            data["runs"].append(child(json.loads(spec)))
+            print(row(data["runs"][-1]), flush=True)
         if args.target:
             spec = {"m": 30000, "method": "gs", "options": {"form": "assembled"}}
             tries = []
@@ -189,7 +194,7 @@ def main():
                 tries.append(child(spec))
                 print(row(tries[-1]), flush=True)
             data["target"] = {"date": time.strftime("%Y-%m-%d %H:%M"), "runs": tries, "load_at_end": os.getloadavg()}
-            (RESULTS / "solvers.json").write_text(json.dumps(data, indent=1))
+        (RESULTS / "solvers.json").write_text(json.dumps(data, indent=1))
         write_markdown(data["meta"], data["runs"], data.get("clarabel", []), data.get("target"))
         return
 
@@ -226,9 +231,11 @@ def main():
     for extra in ({"variant": "dynamics"}, {"window": 2}):
         go(dict({"m": mid, "method": "gs", "options": {"form": "assembled"}}, **extra))
         go(dict({"m": mid, "method": "gs", "options": {"form": "matrix_free"}}, **extra))
-    # Coulomb (forward simulator), dense D
+    # Coulomb (forward simulator): dense D, and the inverse variant's stiffer coupling
     for m in [s for s in sizes if s <= 30000]:
         go({"m": m, "method": "auto", "law": "coulomb", "variant": "dynamics"})
+    for m in [s for s in sizes if s <= 30000]:
+        go({"m": m, "method": "auto", "law": "coulomb"})
 
     # clarabel scaling (factored form): both contact graphs, both of its direct solvers; a series stops at
     # the first size that is not solved within the limit

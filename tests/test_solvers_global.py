@@ -298,6 +298,28 @@ def test_frictionless_contacts_in_clarabel():
     assert cl.objective == pytest.approx(gs.objective, rel=1e-7)
 
 
+def test_diagonal_dense_blocks_are_stored_as_diagonals():
+    """np.diag(...) blocks (as the inversion builds them) take the diagonal fast paths, same answer."""
+    P = hair(120, seed=15)
+    dense = [np.diag(d) for d in P.D_blocks]
+    Q = ContactProblem(P.H, dense, P.dof_offsets, P.gamma, P.b, P.mu)
+    assert Q.is_diagonal
+    a = solve_contact_problem(P, tol=1e-10)
+    b = solve_contact_problem(Q, tol=1e-10)
+    np.testing.assert_allclose(a.r, b.r, rtol=0, atol=1e-12 * np.abs(a.r).max())
+
+
+def test_residual_scale_option():
+    """A caller's residual scale (the simulator floors it) is used for stopping and for the result."""
+    P = hair(200, seed=16)
+    small = ContactProblem(P.H, P.D_blocks, P.dof_offsets, P.gamma, 1e-9 * P.b, P.mu)
+    res = solve_contact_problem(small, law="coulomb", method="auto", tol=1e-8, scale=1.0)
+    assert res.converged and res.residual <= 1e-8
+    assert res.residual == pytest.approx(small.residual(res.r, "coulomb") * small.residual_scale(), rel=1e-6, abs=1e-18)
+    cl = solve_contact_problem(P, method="clarabel", scale=1.0)
+    assert cl.converged
+
+
 def test_result_fields():
     P = hair(50, seed=14)
     res = solve_contact_problem(P)
@@ -307,6 +329,8 @@ def test_result_fields():
 
 
 def test_projection_is_a_projection():
+    assert project_cone(0.0, -1.0, 0.0, 0.0) == (0.0, 0.0, 0.0)  # mu = 0: the cone is a ray
+    assert project_cone(0.0, 2.0, 0.0, 0.0) == (2.0, 0.0, 0.0)
     rng = np.random.default_rng(0)
     for mu in [0.0, 0.3, 1.0, 7.0]:
         for _ in range(200):

@@ -14,7 +14,7 @@ import scipy.sparse as sp
 
 from . import residual as _res
 from .apgd import FactoredMatvec, UpperMatvec, run_apgd
-from .blocks import PackedRows, UpperBlockDelassus, contact_segments
+from .blocks import UpperBlockDelassus, contact_segments
 from .clarabel_socqp import solve_assembled, solve_factored
 from .coulomb_fixed_point import run_coulomb_fixed_point
 from .cones import law_code
@@ -40,7 +40,7 @@ class SolveResult:
     objective:      1/2 r^T W r + b^T r (the SOCQP's objective; informative only for the Coulomb law).
     cone_violation: max_i max(0, ||r_T,i|| - mu_i r_N,i).
     time_s:         wall time including set-up (assembly, factorisation, ...).
-    method:         "gs", "apgd" or "clarabel".
+    method:         "gs", "apgd", "clarabel", "fixed_point" or "auto" (Coulomb; see info["switched_to"]).
     info:           details: form, setup_s, solve_s, local_failures, history [(iteration, residual, s)], ...
     """
 
@@ -81,7 +81,7 @@ def _run_gs_family(op, law, method, tol, max_iter, r0, options, info):
     """Gauss-Seidel (SOC or Coulomb), the Coulomb fixed point, or 'auto' (GS, then fixed point if it
     stalls).  Returns (r, iterations, converged, residual of the solver)."""
     if method == "fixed_point":
-        fp_opts = {k: v for k, v in options.items() if k in ("anderson", "time_limit", "check_every", "max_outer")}
+        fp_opts = {k: v for k, v in options.items() if k in ("anderson", "time_limit", "check_every", "max_outer", "scale")}
         out = run_coulomb_fixed_point(op, tol=tol, max_sweeps=max_iter, r0=r0, **fp_opts)
         info.update(local_failures=out.local_failures, history=out.history, outer_iterations=out.outer,
                     solve_s=out.solve_s)
@@ -90,7 +90,7 @@ def _run_gs_family(op, law, method, tol, max_iter, r0, options, info):
     out = run_gauss_seidel(op, law, tol=tol, max_sweeps=max_iter, r0=r0, stall_window=stall, **options)
     info.update(local_failures=out.local_failures, history=out.history, solve_s=out.solve_s)
     if method == "auto" and not out.converged and out.sweeps < max_iter and np.isfinite(out.residual):
-        fp_opts = {k: v for k, v in options.items() if k in ("anderson", "time_limit", "check_every")}
+        fp_opts = {k: v for k, v in options.items() if k in ("anderson", "time_limit", "check_every", "scale")}
         fp = run_coulomb_fixed_point(op, tol=tol, max_sweeps=max_iter - out.sweeps, r0=out.r, **fp_opts)
         info.update(switched_to="fixed_point", gs_sweeps=out.sweeps, outer_iterations=fp.outer,
                     local_failures=out.local_failures + fp.local_failures,
@@ -145,13 +145,14 @@ def _solve_assembled(W, b, mu, law, method, tol, max_iter, r0, options) -> Solve
         info.update(form="assembled", setup_s=setup_s, solve_s=out.solve_s, restarts=out.restarts, history=out.history)
         status = _iterative_status(conv, out.residual, iters, max_iter)
     else:
-        out = solve_assembled(W, b, mu, max_iter=max_iter, **options)
+        out = solve_assembled(W, b, mu, max_iter=max_iter, **{k: v for k, v in options.items() if k != "scale"})
         r, iters, status = out.r, out.iterations, out.status
         conv = status == "Solved"
         info.update(form="assembled", setup_s=out.setup_s, solve_s=out.solve_s, kkt_size=out.kkt_size)
     u = W @ r + b
     rho = _res.rho_from_diagonal(_diagonal_of(W))
-    residual = _res.residual(r, u, mu, rho, _res.residual_scale(b, rho), law=law)
+    scale = options.get("scale") or _res.residual_scale(b, rho)
+    residual = _res.residual(r, u, mu, rho, scale, law=law)
     return SolveResult(
         r=r, status=status, converged=bool(conv), residual=float(residual), iterations=int(iters),
         objective=float(0.5 * r @ (u + b)), cone_violation=_res.cone_violation(r, mu),
@@ -175,7 +176,8 @@ def solve_socqp(W, b, mu, method: str = "gs", tol: float = 1e-8, max_iter: int |
     W: scipy sparse (3m, 3m) symmetric PSD in 3x3 blocks, normal first in each block; b: (3m,);
     mu: scalar or (m,).  method: "gs" (block Gauss-Seidel + Anderson acceleration), "apgd", "clarabel"
     (interior point, exact), "auto" (= "gs").  tol: on the residual of residual.py (iterative methods).
-    options: gs: anderson=8 (memory; 0 = plain Gauss-Seidel), anderson_start=10, omega=1.0, order="natural", check_every=10, time_limit;
+    options: gs: anderson=8 (memory; 0 = plain Gauss-Seidel), anderson_start=10, omega=1.0, order="natural",
+    check_every=10, time_limit, scale (replaces max_i rho_i ||b_i|| in the residual, e.g. to floor it);
     apgd: check_every, time_limit; clarabel: tol (its gap/feasibility tolerance), threads, linear_solver."""
     return _solve_assembled(W, b, mu, "soc", method, tol, max_iter, r0, dict(options))
 
@@ -245,7 +247,7 @@ def solve_contact_problem(
     options = dict(options)
     info: dict = {}
     if method == "clarabel":
-        out = solve_factored(problem, max_iter=max_iter, **options)
+        out = solve_factored(problem, max_iter=max_iter, **{k: v for k, v in options.items() if k != "scale"})
         r, iters, status = out.r, out.iterations, out.status
         conv = status == "Solved"
         info.update(form="factored", setup_s=out.setup_s, solve_s=out.solve_s, kkt_size=out.kkt_size)
@@ -271,7 +273,10 @@ def solve_contact_problem(
         status = _iterative_status(conv, res_solver, iters, max_iter)
         info.update(form=form, setup_s=setup_s)
     u = problem.velocity(r)
-    residual = problem.residual(r, law=law, u=u)
+    if options.get("scale") is not None:  # the caller's residual scale (see run_gauss_seidel)
+        residual = _res.residual(r, u, problem.mu, problem.rho(), float(options["scale"]), law=law)
+    else:
+        residual = problem.residual(r, law=law, u=u)
     return SolveResult(
         r=r, status=status, converged=bool(conv), residual=float(residual), iterations=int(iters),
         objective=float(0.5 * r @ (u + problem.b)), cone_violation=problem.cone_violation(r),

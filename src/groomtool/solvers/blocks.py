@@ -15,6 +15,7 @@ import numpy as np
 import scipy.sparse as sp
 from numba import njit
 
+# numba fastmath flags: fused multiply-add only (IEEE semantics otherwise)
 _FM = {"contract"}
 
 
@@ -180,6 +181,23 @@ def _merge_rows(indptr, indices, data, ptr, cols, vals, count_only):
         e1 = p2
         e2 = indptr[3 * i + 3]
         out = 0 if count_only else ptr[i]
+        k = e0 - p0
+        same = e1 - p1 == k and e2 - p2 == k
+        if same:
+            for t in range(k):
+                if indices[p0 + t] != indices[p1 + t] or indices[p0 + t] != indices[p2 + t]:
+                    same = False
+                    break
+        if same:  # the usual case: a frame times one point Jacobian
+            if count_only:
+                ptr[i + 1] = k
+            else:
+                for t in range(k):
+                    cols[out + t] = indices[p0 + t]
+                    vals[out + t, 0] = data[p0 + t]
+                    vals[out + t, 1] = data[p1 + t]
+                    vals[out + t, 2] = data[p2 + t]
+            continue
         big = np.iinfo(np.int64).max
         while p0 < e0 or p1 < e1 or p2 < e2:
             c0 = np.int64(indices[p0]) if p0 < e0 else big
@@ -339,6 +357,12 @@ def _strand_pair_blocks(seg_ptr, seg_contact, seg_h0, seg_h1, h_cols, h_vals, of
     Returns the number of blocks written."""
     n_out = 0
     S = seg_ptr.shape[0] - 1
+    kmax = 0
+    nmax = 0
+    for s in range(S):
+        kmax = max(kmax, seg_ptr[s + 1] - seg_ptr[s])
+        nmax = max(nmax, offsets[s + 1] - offsets[s])
+    G = np.empty((kmax, nmax, 3))  # scratch: G[a, q] = (D_s H_a^T)[q]
     for s in range(S):
         k0 = seg_ptr[s]
         k1 = seg_ptr[s + 1]
@@ -347,7 +371,11 @@ def _strand_pair_blocks(seg_ptr, seg_contact, seg_h0, seg_h1, h_cols, h_vals, of
             continue
         off = offsets[s]
         ns = offsets[s + 1] - off
-        G = np.zeros((k, ns, 3))  # G[a, q] = (D_s H_a^T)[q]
+        for a in range(k):
+            for q in range(ns):
+                G[a, q, 0] = 0.0
+                G[a, q, 1] = 0.0
+                G[a, q, 2] = 0.0
         dp = d_ptr[s]
         for a in range(k):
             for p in range(seg_h0[k0 + a], seg_h1[k0 + a]):
@@ -416,25 +444,77 @@ def _strand_pair_blocks(seg_ptr, seg_contact, seg_h0, seg_h1, h_cols, h_vals, of
     return n_out
 
 
+@njit(cache=True)
+def _segments(h_ptr, h_cols, offsets, count_only, seg_strand, seg_contact, seg_h0, seg_h1):
+    """Runs of each contact's packed columns that fall in one strand (columns sorted per contact).
+    Returns the number of runs."""
+    S = offsets.shape[0] - 1
+    n = 0
+    for i in range(h_ptr.shape[0] - 1):
+        p = h_ptr[i]
+        while p < h_ptr[i + 1]:
+            col = h_cols[p]
+            lo = 0
+            hi = S  # offsets[lo] <= col < offsets[hi]
+            while hi - lo > 1:
+                mid = (lo + hi) // 2
+                if offsets[mid] <= col:
+                    lo = mid
+                else:
+                    hi = mid
+            end = offsets[lo + 1]
+            q = p
+            while q < h_ptr[i + 1] and h_cols[q] < end:
+                q += 1
+            if not count_only:
+                seg_strand[n] = lo
+                seg_contact[n] = i
+                seg_h0[n] = p
+                seg_h1[n] = q
+            n += 1
+            p = q
+    return n
+
+
+@njit(cache=True)
+def _bucket_by_strand(S, seg_strand, seg_contact, seg_h0, seg_h1):
+    """Counting sort of the runs by strand (stable: contacts stay increasing within a strand)."""
+    n = seg_strand.shape[0]
+    ptr = np.zeros(S + 1, dtype=np.int64)
+    for k in range(n):
+        ptr[seg_strand[k] + 1] += 1
+    for s in range(S):
+        ptr[s + 1] += ptr[s]
+    pos = ptr[:-1].copy()
+    c = np.empty(n, dtype=np.int64)
+    h0 = np.empty(n, dtype=np.int64)
+    h1 = np.empty(n, dtype=np.int64)
+    for k in range(n):
+        s = seg_strand[k]
+        j = pos[s]
+        pos[s] += 1
+        c[j] = seg_contact[k]
+        h0[j] = seg_h0[k]
+        h1[j] = seg_h1[k]
+    return ptr, c, h0, h1
+
+
 def contact_segments(problem, H: "PackedRows"):
-    """Per (strand, contact) runs of H's packed panels: (seg_ptr over strands, contact, h0, h1)."""
-    m = problem.n_contacts
-    strand = np.searchsorted(problem.dof_offsets, H.cols, side="right") - 1
-    contact = np.repeat(np.arange(m, dtype=np.int64), np.diff(H.ptr))
-    if H.cols.size == 0:
-        z = np.zeros(0, dtype=np.int64)
-        return np.zeros(problem.n_strands + 1, dtype=np.int64), z, z, z
-    start = np.ones(H.cols.size, dtype=bool)
-    start[1:] = (contact[1:] != contact[:-1]) | (strand[1:] != strand[:-1])
-    h0 = np.flatnonzero(start)
-    h1 = np.append(h0[1:], H.cols.size)
-    seg_strand = strand[h0]
-    seg_contact = contact[h0]
-    order = np.lexsort((seg_contact, seg_strand))
-    seg_ptr = np.zeros(problem.n_strands + 1, dtype=np.int64)
-    np.add.at(seg_ptr, seg_strand + 1, 1)
-    seg_ptr = np.cumsum(seg_ptr)
-    return seg_ptr, seg_contact[order], h0[order], h1[order]
+    """Per (strand, contact) runs of H's packed panels: (seg_ptr over strands, contact, h0, h1), cached
+    on the problem."""
+    if "segments" in problem._cache:
+        return problem._cache["segments"]
+    offsets = problem.dof_offsets
+    z = np.zeros(0, dtype=np.int64)
+    n = _segments(H.ptr, H.cols, offsets, True, z, z, z, z)
+    st = np.empty(n, dtype=np.int64)
+    sc = np.empty(n, dtype=np.int64)
+    h0 = np.empty(n, dtype=np.int64)
+    h1 = np.empty(n, dtype=np.int64)
+    _segments(H.ptr, H.cols, offsets, False, st, sc, h0, h1)
+    out = _bucket_by_strand(problem.n_strands, st, sc, h0, h1)
+    problem._cache["segments"] = out
+    return out
 
 
 def assemble_upper(problem, H: "PackedRows | None" = None) -> UpperBlockDelassus:
@@ -451,24 +531,73 @@ def assemble_upper(problem, H: "PackedRows | None" = None) -> UpperBlockDelassus
     d_data, d_ptr, d_diag = flat_strand_blocks(problem)
     n = _strand_pair_blocks(seg_ptr, seg_contact, h0, h1, H.cols, H.vals, problem.dof_offsets, d_data, d_ptr, d_diag,
                             out_i, out_j, out_b)
-    # every contact gets its diagonal block (+ 2 gamma I)
-    out_i = np.concatenate([out_i[:n], np.arange(m)])
-    out_j = np.concatenate([out_j[:n], np.arange(m)])
-    out_b = np.concatenate([out_b[:n], np.broadcast_to(2.0 * problem.gamma * np.eye(3), (m, 3, 3))])
-    key = out_i * m + out_j
-    order = np.argsort(key, kind="stable")
-    key = key[order]
-    first = np.ones(key.size, dtype=bool)
-    first[1:] = key[1:] != key[:-1]
-    starts = np.flatnonzero(first)
-    blocks = np.add.reduceat(out_b[order], starts, axis=0)
-    ui = key[starts] // m
-    uj = key[starts] % m
-    indptr = np.zeros(m + 1, dtype=np.int64)
-    np.add.at(indptr, ui + 1, 1)
-    indptr = np.cumsum(indptr)
+    indptr, cols, blocks = _rows_from_pairs(m, out_i[:n], out_j[:n], out_b[:n], 2.0 * problem.gamma)
     idx_type = np.int32 if m < 2**31 else np.int64
-    return UpperBlockDelassus(indptr, np.ascontiguousarray(uj, dtype=idx_type), np.ascontiguousarray(blocks))
+    return UpperBlockDelassus(indptr, cols.astype(idx_type), blocks)
+
+
+@njit(cache=True)
+def _rows_from_pairs(m, pi, pj, pb, gamma2):
+    """Group (i, j, block) contributions (i <= j) into block-CSR rows: diagonal first, columns sorted,
+    duplicates summed, + 2 gamma I on every diagonal (present for every contact)."""
+    n = pi.shape[0]
+    cnt = np.ones(m + 1, dtype=np.int64)  # one slot per row for the diagonal
+    cnt[0] = 0
+    for k in range(n):
+        if pi[k] != pj[k]:
+            cnt[pi[k] + 1] += 1
+    for i in range(m):
+        cnt[i + 1] += cnt[i]
+    cap = cnt
+    cols = np.empty(cap[m], dtype=np.int64)
+    blocks = np.zeros((cap[m], 3, 3))
+    fill = cap[:-1].copy() + 1
+    for i in range(m):
+        cols[cap[i]] = i
+        for x in range(3):
+            blocks[cap[i], x, x] = gamma2
+    for k in range(n):
+        i = pi[k]
+        if pj[k] == i:
+            dst = cap[i]
+        else:
+            dst = fill[i]
+            fill[i] += 1
+            cols[dst] = pj[k]
+        for x in range(3):
+            for y in range(3):
+                blocks[dst, x, y] += pb[k, x, y]
+    # sort each row's off-diagonal part by column and merge duplicates (rows are short: insertion sort)
+    out_ptr = np.zeros(m + 1, dtype=np.int64)
+    w = 0
+    for i in range(m):
+        a = cap[i] + 1
+        e = cap[i + 1]
+        for t in range(a + 1, e):
+            c = cols[t]
+            blk = blocks[t].copy()
+            u = t - 1
+            while u >= a and cols[u] > c:
+                cols[u + 1] = cols[u]
+                blocks[u + 1] = blocks[u]
+                u -= 1
+            cols[u + 1] = c
+            blocks[u + 1] = blk
+        # compact: diagonal, then merged off-diagonals
+        cols[w] = cols[cap[i]]
+        blocks[w] = blocks[cap[i]]
+        w += 1
+        last = -1
+        for t in range(a, e):
+            if cols[t] == last:
+                blocks[w - 1] += blocks[t]
+            else:
+                cols[w] = cols[t]
+                blocks[w] = blocks[t]
+                last = cols[t]
+                w += 1
+        out_ptr[i + 1] = w
+    return out_ptr, cols[:w].copy(), blocks[:w].copy()
 
 
 @njit(cache=True, fastmath=_FM)

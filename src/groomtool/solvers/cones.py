@@ -39,11 +39,12 @@ def law_code(law: str) -> int:
 def project_cone(mu, zn, zt1, zt2):
     """Euclidean projection of z onto K_mu = {||z_T|| <= mu z_N}.
 
-    interior: z;  polar cone (mu ||z_T|| <= -z_N): 0;
+    interior (||z_T|| <= mu z_N and z_N >= 0; the second matters for mu = 0, z_T = 0): z;
+    polar cone (mu ||z_T|| <= -z_N): 0;
     else:     a (1, mu z_T/||z_T||) with a = (z_N + mu ||z_T||) / (1 + mu^2).
     """
     nt = math.sqrt(zt1 * zt1 + zt2 * zt2)
-    if nt <= mu * zn:
+    if nt <= mu * zn and zn >= 0.0:
         return zn, zt1, zt2
     if mu * nt <= -zn:
         return 0.0, 0.0, 0.0
@@ -66,7 +67,7 @@ def project_cone_jacobian(mu, z, P, J):
     for i in range(3):
         for j in range(3):
             J[i, j] = 0.0
-    if nt <= mu * zn:
+    if nt <= mu * zn and zn >= 0.0:
         P[0] = zn
         P[1] = zt1
         P[2] = zt2

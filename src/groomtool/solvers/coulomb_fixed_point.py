@@ -47,14 +47,17 @@ def run_coulomb_fixed_point(
     anderson: int = 5,
     inner_ratio: float = 0.05,
     time_limit: float | None = None,
+    scale: float | None = None,
     **gs_options,
 ) -> FixedPointOutcome:
     """op: a Gauss-Seidel operator (its free velocity op.b is shifted by s e_N during the solve and
-    restored).  Stops when the Coulomb residual (residual.py) <= tol."""
+    restored).  Stops when the Coulomb residual (residual.py; ``scale`` overrides max_i rho_i ||b_i||)
+    <= tol."""
     t0 = time.perf_counter()
     m = op.b.shape[0]
     b_internal = op.b.copy()
-    scale = _res.residual_scale(b_internal, op.rho)
+    if scale is None:
+        scale = _res.residual_scale(b_internal, op.rho)
     r = np.zeros(3 * m) if r0 is None else np.asarray(r0, dtype=np.float64).reshape(-1).copy()
 
     def coulomb_state(r_ext):

@@ -34,13 +34,14 @@ import numpy as np
 import scipy.sparse as sp
 from numba import njit
 
-_FM = {"contract"}
-
 from . import residual as _res
 from .anderson import AndersonMixer
-from .blocks import PackedRows, UpperBlockDelassus, assemble_upper, upper_block_matvec
+from .blocks import UpperBlockDelassus, assemble_upper, upper_block_matvec
 from .cones import SOC, law_code
 from .local import FAILED, LOCAL_TOL, NEWTON_MAX_ITER, normalize_block, solve_block
+
+# numba fastmath flags: fused multiply-add, reciprocal division, no signed zeros
+_FM = {"contract", "arcp", "nsz"}
 
 
 # ----------------------------------------------------------------------------------------------

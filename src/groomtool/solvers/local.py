@@ -8,7 +8,8 @@ Find r (3,) such that, with u = A r + c (A symmetric PSD 3x3, normally SPD),
 
 Strategy (after normalising the problem to tr(A) = 3 and ||c|| = 1, so that one tolerance fits all):
 
-1. take-off test, then the frictionless case (mu = 0), then stick r = -A^{-1} c (closed forms);
+1. take-off test, then the frictionless case (mu = 0), then stick r = -A^{-1} c (closed forms; for a
+   singular A of rank 2 the stick set r_p + t n is intersected with the cone by a quadratic in t);
 2. slip: non-smooth Newton on the natural map F(r) = r - P_K(r - u_eff(r)) (rho = 1 after the
    normalisation), Armijo line search on ||F||, warm-started;
 3. if Newton fails, the exact enumerative slip solver: on the slip branch A r + c = -nu G r with
@@ -28,9 +29,10 @@ import math
 import numpy as np
 from numba import njit
 
-_FM = {"contract"}
-
 from .cones import COULOMB, SOC, effective_velocity, law_code, project_cone
+
+# numba fastmath flags: fused multiply-add only (IEEE semantics otherwise)
+_FM = {"contract"}
 
 TAKEOFF = 0
 STICK = 1
@@ -201,7 +203,7 @@ def _newton_step(law, mu, A, c0, c1, c2, r0, r1, r2, F0, F1, F2):
     zt1 = r1 - u1
     zt2 = r2 - u2
     nt = math.sqrt(zt1 * zt1 + zt2 * zt2)
-    if nt <= mu * zn:
+    if nt <= mu * zn and zn >= 0.0:
         # J_P = I:  J_F = dU
         J = (d00, d01, d02, A[3], A[4], A[5], A[6], A[7], A[8])
     elif mu * nt <= -zn:

@@ -23,7 +23,8 @@ class ContactProblem:
 
     H:           (3m, n) sparse contact Jacobian, rows 3i..3i+2 = contact i's [N, T1, T2] frame.
     D_blocks:    one block per strand, either (n_s, n_s) dense SPD or (n_s,) a diagonal; or a single
-                 (n,) array, the diagonal of D over all dofs.
+                 (n,) array, the diagonal of D over all dofs.  (A dense block that is exactly diagonal
+                 is stored as its diagonal.)
     dof_offsets: (S + 1,) strand s owns dofs dof_offsets[s]:dof_offsets[s+1].
     gamma:       regularisation, W gets + 2 gamma I.
     b:           (3m,) free velocity (b = H v_free in dynamics, -H K^{-1} d in the inversion).
@@ -68,6 +69,9 @@ class ContactProblem:
                 raise ValueError(f"diagonal D has {blocks.shape[0]} entries, expected {self.n_dofs}")
             blocks = [blocks[a:b] for a, b in zip(self.dof_offsets[:-1], self.dof_offsets[1:])]
         blocks = [np.asarray(d, dtype=np.float64) for d in blocks]
+        # a dense block that is exactly diagonal (e.g. np.diag(K^-2)) is stored as its diagonal
+        blocks = [np.ascontiguousarray(np.diagonal(d)) if d.ndim == 2 and d.shape[0] == d.shape[1]
+                  and not np.any(d - np.diag(np.diagonal(d))) else d for d in blocks]
         if len(blocks) != len(sizes):
             raise ValueError(f"{len(blocks)} D blocks for {len(sizes)} strands")
         for s, (d, k) in enumerate(zip(blocks, sizes)):
