@@ -106,8 +106,10 @@ def time_big_groom(n_strands: int, steps: int) -> dict:
     groom, head = example_groom(n_strands)
     t0 = time.perf_counter()
     out = {"groom": f"example_groom({n_strands})", "strands": n_strands}
-    params = InversionParams(contacts="all", contact_radius=EXAMPLE_CONTACT_RADIUS, solver_tolerance=1e-5)
-    try:  # the SOCQP's optimality to 1e-5: the equilibrium is exact for whatever forces it returns
+    # the SOCQP's optimality to 5e-4 only (its Gauss-Seidel is slow on these ~20k contacts): the
+    # equilibrium is exact for whatever forces it returns, and they are inside the cones
+    params = InversionParams(contacts="all", contact_radius=EXAMPLE_CONTACT_RADIUS, solver_tolerance=5e-4)
+    try:
         result = invert_groom(groom, head, params)
         out["inversion"] = {"converged": True, "contacts": result.report["contacts"]["total"],
                             "solve": {k: result.report["solve"][k] for k in ("solver", "iterations", "residual")},
@@ -185,6 +187,8 @@ def main(argv=None) -> int:
     ap.add_argument("--seconds", type=float, default=1.0)
     ap.add_argument("--dt", type=float, default=1 / 240)
     ap.add_argument("--no-long", action="store_true", help="skip the long styles with isolation-unstable strands")
+    ap.add_argument("--no-styles", action="store_true", help="only the timing of the large groom")
+    ap.add_argument("--keep-styles", action="store_true", help="reuse the style rows of simulate.json")
     args = ap.parse_args(argv)
     warnings.simplefilter("ignore")
     if not DATA.is_dir():
@@ -193,6 +197,11 @@ def main(argv=None) -> int:
     styles = args.styles or (STYLES[:1] + STYLES[6:8] if args.quick else STYLES + ([] if args.no_long else LONG_STYLES))
     classes = hair_classes()
     rows = []
+    if args.keep_styles and (RESULTS / "simulate.json").is_file():
+        rows = json.loads((RESULTS / "simulate.json").read_text())["styles"]
+        styles = []
+    elif args.no_styles:
+        styles = []
     for style in styles:
         t = time.perf_counter()
         row = run_style(style, classes, args.seconds, args.dt)
