@@ -301,7 +301,7 @@ def invert_groom(groom: Groom, head=None, params: InversionParams | None = None,
         report["contacts"] = {"total": int(len(contacts.strand_a)),
                               "strand_strand": int(np.count_nonzero(np.asarray(contacts.strand_b) >= 0)),
                               "strand_head": int(np.count_nonzero(np.asarray(contacts.strand_b) < 0)),
-                              "radius_m": float(contacts.radius) if hasattr(contacts, "radius") else params.contact_radius}
+                              "radius_m": float(contacts.radius)}
         mu = np.full(len(contacts.strand_a), material.friction)
         with timer.stage("solve"):
             problem = build_inverse_problem(helix, kin, H, material, gravity, params.guess, params.gamma, mu)
@@ -312,13 +312,13 @@ def invert_groom(groom: Groom, head=None, params: InversionParams | None = None,
         report["solve"]["cone_violation"] = cone_violation(forces, mu)
         report["solve"]["gamma"] = params.gamma
         report["solve"]["guess"] = params.guess
-        with timer.stage("rest_curvatures"):
-            rest = rest_curvatures_with_contacts(helix, material, gravity, H, forces.ravel(), kin)
         if not solve["converged"]:
             raise SolverFailure(
                 f"contact solver {solve['solver']} did not converge: status {solve['status']}, "
                 f"residual {solve['residual']:.3e} after {solve['iterations']} iterations",
                 solve["status"], solve["residual"])
+        with timer.stage("rest_curvatures"):
+            rest = rest_curvatures_with_contacts(helix, material, gravity, H, forces.ravel(), kin)
     else:
         with timer.stage("rest_curvatures"):
             rest = isolated_rest_curvatures(helix, material, gravity)
