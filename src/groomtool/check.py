@@ -71,7 +71,7 @@ def load_inverted(outdir) -> InvertedGroom:
     params = report.get("parameters", {})
     contacts = params.get("contacts", "all" if head is not None else "none")
     radius = scalar("contact_radius", None) if "contact_radius" in arrays else None
-    if radius is None:
+    if radius is None or not np.isfinite(radius):  # NaN: written without contacts
         radius = report.get("contacts", {}).get("radius_m") or params.get("contact_radius_m")
     ratio = np.asarray(arrays.get("stiffness_ratio", np.zeros(0)), dtype=np.float64)
     forces = None

@@ -51,6 +51,7 @@ def result_arrays(result) -> dict:
         "contact_normals": np.asarray(c.normal, dtype=np.float64) if m else np.zeros((0, 3)),
         "contact_frames": np.asarray(c.frame, dtype=np.float64) if m else np.zeros((0, 3, 3)),
         "contact_forces": np.asarray(result.forces, dtype=np.float64).reshape(-1, 3) if m else np.zeros((0, 3)),
+        "contact_radius": np.array(np.nan if getattr(c, "radius", None) is None else float(c.radius)),
     })
     head = result.head
     arrays["head_vertices"] = np.asarray(head.vertices, dtype=np.float64) if head is not None else np.zeros((0, 3))
