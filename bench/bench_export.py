@@ -26,6 +26,7 @@ from pathlib import Path  # noqa: E402
 import numpy as np  # noqa: E402
 
 from groomtool import Material  # noqa: E402
+from groomtool.io import read_data  # noqa: E402
 from groomtool.rods.cosserat import cosserat_rest_data  # noqa: E402
 from groomtool.rods.der import der_rest_data  # noqa: E402
 from groomtool.rods.discrete import arc_lengths, prepare_rods  # noqa: E402
@@ -36,22 +37,13 @@ USC_DIR = ROOT.parent / "shared" / "data" / "usc" / "cstrands"
 GRAVITY = np.array([0.0, -9.81, 0.0])  # USC data is y-up
 
 
-def load_cstrands(path: Path) -> list[np.ndarray]:
-    raw = path.read_bytes()
-    count = int(np.frombuffer(raw, "<i4", 1, 0)[0])
-    pos, strands = 4, []
-    for _ in range(count):
-        n = int(np.frombuffer(raw, "<i4", 1, pos)[0])
-        strands.append(np.frombuffer(raw, "<f4", 3 * n, pos + 4).reshape(n, 3).astype(np.float64))
-        pos += 4 + 12 * n
-    return strands
 
 
 def usc_groom(n_strands: int):
     """USC guide strands (100 vertices each), cycled to n_strands, each copy shifted by 1 mm."""
     files = sorted(USC_DIR.glob("cstrands*.data"))
-    # a few guide strands repeat a vertex (zero-length edge, rejected by the export): leave them out
-    pool = [s for f in files for s in load_cstrands(f)
+    # a guide strand that repeats a vertex is repaired to fewer than 100 vertices on reading: leave it out
+    pool = [s for f in files for s in read_data(f, repair=True).strands()
             if len(s) == 100 and np.all(np.linalg.norm(np.diff(s, axis=0), axis=1) > 0)]
     strands = [pool[i % len(pool)] + 1e-3 * (i // len(pool)) for i in range(n_strands)]
     return np.concatenate(strands), np.arange(n_strands + 1) * 100, f"USC-HairSalon cstrands ({len(pool)} real)"

@@ -32,6 +32,7 @@ import numpy as np  # noqa: E402
 
 import groomtool.fit.fitter as fitter  # noqa: E402
 from groomtool.groom import Groom  # noqa: E402
+from groomtool.io import read_data  # noqa: E402
 from groomtool.material import Material  # noqa: E402
 from groomtool.rods import superhelix as sh  # noqa: E402
 
@@ -41,25 +42,14 @@ RESULTS = ROOT / "bench" / "results"
 STAGES = ("prepare", "sample", "relax", "helix", "assemble", "error", "merge")
 
 
-def read_data(path, scale=1.0):
-    """USC-HairSalon .data: int32 strand count, per strand int32 n and n float32 xyz."""
-    raw = np.fromfile(path, dtype=np.uint8)
-    count = int(raw[:4].view("<i4")[0])
-    strands, pos = [], 4
-    for _ in range(count):
-        n = int(raw[pos:pos + 4].view("<i4")[0])
-        pos += 4
-        strands.append(raw[pos:pos + 12 * n].view("<f4").reshape(n, 3).astype(np.float64) * scale)
-        pos += 12 * n
-    return strands
 
 
 def harolongo() -> Groom:
-    return Groom.from_strands(read_data(DATA / "digital-salon" / "harolongo.data", 0.01), source="harolongo")
+    return Groom.from_strands(list(read_data(DATA / "digital-salon" / "harolongo.data", scale=0.01).strands()), source="harolongo")
 
 
 def usc10k(style: str = "cstrands00003.data") -> Groom:
-    guides = read_data(DATA / "usc" / "cstrands" / style)
+    guides = list(read_data(DATA / "usc" / "cstrands" / style).strands())
     roots = np.array([line.split()[1:4] for line in open(DATA / "usc" / "roots10k.obj") if line.startswith("v ")],
                      dtype=np.float64)
     guide_roots = np.array([g[0] for g in guides])

@@ -7,6 +7,7 @@ import trimesh
 from groomtool.contact import (DEFAULT_CONTACT_RADIUS, HEAD, HeadSurface, detect_contacts, detect_head_contacts,
                                root_gaps, snap_roots)
 from groomtool.groom import Groom
+from groomtool.io import read_data
 
 R = 0.1  # sphere radius (m)
 RC = 1e-4
@@ -180,19 +181,10 @@ def test_root_gaps_and_snapping(sphere, sphere_surface):
 
 
 # ---------------------------------------------------------------------------------------- real data
-def read_data(path):
-    raw = path.read_bytes()
-    n = int(np.frombuffer(raw, "<i4", 1, 0)[0])
-    pos, strands = 4, []
-    for _ in range(n):
-        c = int(np.frombuffer(raw, "<i4", 1, pos)[0])
-        strands.append(np.frombuffer(raw, "<f4", 3 * c, pos + 4).reshape(c, 3).astype(np.float64))
-        pos += 4 + 12 * c
-    return strands
 
 
 def test_real_groom_subset(shared_data):
-    strands = [s * 0.01 for s in read_data(shared_data / "digital-salon" / "harolongo.data")[::20]]  # cm -> m
+    strands = list(read_data(shared_data / "digital-salon" / "harolongo.data", scale=0.01).strands())[::20]  # cm -> m
     mesh = trimesh.load(shared_data / "digital-salon" / "Retopologised_Female_Head_01_mod.obj", process=False)
     mesh.apply_scale(0.01)
     pts, off, arc = ragged(strands)

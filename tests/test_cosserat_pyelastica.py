@@ -31,6 +31,7 @@ ea = pytest.importorskip("elastica", reason="pyelastica (test dependency, pinned
 from elastica.version import VERSION  # noqa: E402
 
 from groomtool import Material  # noqa: E402
+from groomtool.io import read_data  # noqa: E402
 from groomtool.rods.cosserat import cosserat_rest_data, pyelastica_rod  # noqa: E402
 
 if not VERSION.startswith("1.0"):  # the conventions were read from and checked against 1.0.0
@@ -47,15 +48,6 @@ T_END = 0.5
 DX = 0.01                 # target edge length of the simulated rods
 
 
-def load_cstrands(path):
-    raw = path.read_bytes()
-    count = int(np.frombuffer(raw, "<i4", 1, 0)[0])
-    pos, strands = 4, []
-    for _ in range(count):
-        n = int(np.frombuffer(raw, "<i4", 1, pos)[0])
-        strands.append(np.frombuffer(raw, "<f4", 3 * n, pos + 4).reshape(n, 3).astype(np.float64))
-        pos += 4 + 12 * n
-    return strands
 
 
 def cut(strand, length):
@@ -100,7 +92,7 @@ def cases(shared_dir):
          ([0, 0, 0], [3, 5, 8], np.array([[0, 2 * w, w], [w, 0, -w], [0, w, 2 * w]]))),
     ]
     if shared_dir is not None:
-        usc = load_cstrands(shared_dir / "usc" / "cstrands" / "cstrands00003.data")
+        usc = list(read_data(shared_dir / "usc" / "cstrands" / "cstrands00003.data").strands())
         for i in (0, 2, 4):
             out.append((f"USC 00003 #{i} first 10 cm", cut(usc[i], 0.10), None))
         out.append(("USC 00003 #3 (21 cm, hangs)", usc[3], None))
@@ -153,7 +145,7 @@ def test_static_balance_in_pyelastica(shared_dir, capsys):
     """PyElastica's internal forces/torques balance the loads at the groomed state, every strand."""
     strands = [("horizontal 20 cm", horizontal(51)), ("wavy 3D 20 cm", wavy_3d(51))]
     if shared_dir is not None:
-        usc = load_cstrands(shared_dir / "usc" / "cstrands" / "cstrands00003.data")
+        usc = list(read_data(shared_dir / "usc" / "cstrands" / "cstrands00003.data").strands())
         strands += [(f"USC 00003 #{i} ({polyline_length(s):.2f} m)", s) for i, s in enumerate(usc)]
     lines = []
     for name, strand in strands:

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from groomtool import Material
+from groomtool.io import read_data
 from groomtool.rods import discrete as dr
 from groomtool.rods.cosserat import cosserat_rest_data
 from groomtool.rods.der import (
@@ -24,15 +25,6 @@ G = np.array([0.0, -9.81, 0.0])
 USC = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "usc" / "cstrands" / "cstrands00003.data"
 
 
-def load_cstrands(path):
-    raw = path.read_bytes()
-    count = int(np.frombuffer(raw, "<i4", 1, 0)[0])
-    pos, strands = 4, []
-    for _ in range(count):
-        n = int(np.frombuffer(raw, "<i4", 1, pos)[0])
-        strands.append(np.frombuffer(raw, "<f4", 3 * n, pos + 4).reshape(n, 3).astype(np.float64))
-        pos += 4 + 12 * n
-    return strands
 
 
 def random_state(seed, n=12):
@@ -91,7 +83,7 @@ def strands():
            ("wavy 3D 20 cm", np.stack([x, 0.01 * np.sin(40 * x), 0.005 * np.cos(25 * x)], 1)),
            ("hanging curl 30 cm", np.stack([0.01 * np.cos(60 * x), -1.5 * x, 0.01 * np.sin(60 * x)], 1))]
     if USC.is_file():
-        out += [(f"USC 00003 #{i}", s) for i, s in enumerate(load_cstrands(USC))]
+        out += [(f"USC 00003 #{i}", s) for i, s in enumerate(read_data(USC).strands())]
     return out
 
 

@@ -8,19 +8,9 @@ from groomtool.fit.error import closest_distances
 from groomtool.fit.sampling import vertex_arc_lengths
 from groomtool.fit.state import curve_table
 from groomtool.groom import Groom
+from groomtool.io import read_data
 
 
-def read_data(path, scale=1.0):
-    """USC-HairSalon .data: int32 strand count, per strand int32 n and n float32 xyz."""
-    raw = np.fromfile(path, dtype=np.uint8)
-    count = int(raw[:4].view("<i4")[0])
-    strands, pos = [], 4
-    for _ in range(count):
-        n = int(raw[pos:pos + 4].view("<i4")[0])
-        pos += 4
-        strands.append(raw[pos:pos + 12 * n].view("<f4").reshape(n, 3).astype(np.float64) * scale)
-        pos += 12 * n
-    return strands
 
 
 def check(groom, res, tol):
@@ -41,7 +31,7 @@ def usc_groom(shared_data):
     files = sorted((shared_data / "usc" / "cstrands").glob("*.data"))
     if not files:
         pytest.skip("no USC cstrands files")
-    strands = [s for f in files[::3] for s in read_data(f)]           # 115 styles, 575 strands
+    strands = [s for f in files[::3] for s in read_data(f, repair=True).strands()]           # 115 styles, 575 strands
     return Groom.from_strands(strands, source="usc cstrands (every 3rd style)")
 
 
@@ -50,7 +40,7 @@ def harolongo(shared_data):
     path = shared_data / "digital-salon" / "harolongo.data"
     if not path.exists():
         pytest.skip("harolongo.data not found")
-    strands = read_data(path, scale=0.01)                               # centimetres
+    strands = list(read_data(path, scale=0.01).strands())                              # centimetres
     return Groom.from_strands(strands[::4], source="harolongo (every 4th strand)")
 
 
