@@ -186,17 +186,6 @@ class Timer:
         return time.perf_counter() - self._t0
 
 
-def gravity_vector(groom: Groom, material: Material) -> np.ndarray:
-    return groom.gravity(material.gravity)
-
-
-def summarize(values: np.ndarray) -> dict:
-    values = np.asarray(values, dtype=np.float64)
-    if values.size == 0:
-        return {"max": 0.0, "mean": 0.0}
-    return {"max": float(values.max()), "mean": float(values.mean())}
-
-
 # --------------------------------------------------------------------------- the whole job
 @dataclass
 class InversionResult:
@@ -256,7 +245,7 @@ def invert_groom(groom: Groom, head=None, params: InversionParams | None = None,
 
     params = params or InversionParams()
     material = params.material
-    gravity = gravity_vector(groom, material)
+    gravity = groom.gravity(material.gravity)
     timer = Timer()
     report: dict = {"input": groom.source, "up": groom.up, "material": material.as_dict(),
                     "gravity_m_s2": gravity.tolist()}

@@ -40,45 +40,8 @@ def _series_coefficients(n: int, order: int) -> np.ndarray:
     return a[:_N_TERMS]
 
 
-_COEFFS = {(n, d): _series_coefficients(n, d) for n in range(N_MAX + 1) for d in range(3)}
-
-
-def _horner(coeffs: np.ndarray, x: np.ndarray) -> np.ndarray:
-    out = np.full_like(x, coeffs[-1])
-    for c in coeffs[-2::-1]:
-        out = out * x + c
-    return out
-
-
-def _f_reference(x: np.ndarray):
-    """f_n, f_n', f_n'' (n = 0..4) by plain numpy: the readable reference the compiled kernel is tested against."""
-    x = np.asarray(x, dtype=np.float64)
-    f = np.empty((N_MAX + 1,) + x.shape)
-    d1 = np.empty_like(f)
-    d2 = np.empty_like(f)
-    small = x < SERIES_X
-    xs = x[small]
-    for n in range(N_MAX + 1):
-        f[n][small] = _horner(_COEFFS[(n, 0)], xs)
-        d1[n][small] = _horner(_COEFFS[(n, 1)], xs)
-        d2[n][small] = _horner(_COEFFS[(n, 2)], xs)
-    xl = x[~small]
-    th = np.sqrt(xl)
-    fl = [np.cos(th), np.sin(th) / th]
-    for n in range(2, N_MAX + 1):
-        fl.append((1.0 / factorial(n - 2) - fl[n - 2]) / xl)
-    d1l = [-0.5 * fl[1]]
-    for n in range(1, N_MAX + 1):
-        d1l.append((fl[n - 1] - n * fl[n]) / (2.0 * xl))
-    d2l = [-0.5 * d1l[1]]  # f_0' = -f_1 / 2
-    for n in range(1, N_MAX + 1):
-        d2l.append((d1l[n - 1] - (n + 2) * d1l[n]) / (2.0 * xl))
-    for n in range(N_MAX + 1):
-        f[n][~small], d1[n][~small], d2[n][~small] = fl[n], d1l[n], d2l[n]
-    return f, d1, d2
-
-
-_COEFF_ARRAY = np.stack([np.stack([_COEFFS[(n, d)] for n in range(N_MAX + 1)]) for d in range(3)])  # (3, 5, T)
+# _COEFF_ARRAY[d, n] = the Taylor coefficients of the d-th derivative of f_n, (3, 5, T)
+_COEFF_ARRAY = np.array([[_series_coefficients(n, d) for n in range(N_MAX + 1)] for d in range(3)])
 _INV_FACT = np.array([1.0 / factorial(n) for n in range(N_MAX + 1)])
 
 

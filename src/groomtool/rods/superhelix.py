@@ -99,14 +99,6 @@ def _psi_form_hessian(beta, dbeta, ddbeta, gamma, dgamma, ddgamma, omega, z, u, 
     return hess
 
 
-def local_rotation(t: np.ndarray, omega: np.ndarray) -> np.ndarray:
-    """exp(t [omega]x) by Rodrigues' formula in the c_n form; t (...), omega (..., 3)."""
-    z = np.einsum("...i,...i->...", omega, omega)
-    c, _, _ = c_table(t, z, order=0)
-    W = skew(omega)
-    return np.eye(3) + c[1][..., None, None] * W + c[2][..., None, None] * (W @ W)
-
-
 def local_position(t: np.ndarray, omega: np.ndarray) -> np.ndarray:
     """p(t) = int_0^t exp(tau [omega]x) e0 dtau: the centreline in the element's start frame."""
     z = np.einsum("...i,...i->...", omega, omega)
