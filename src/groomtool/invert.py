@@ -129,10 +129,10 @@ class InverseProblem:
         return 0.5 * float(y @ y) + self.gamma * self.w_scale * float(r @ r)
 
 
-def build_inverse_problem(helix, kin, H, material: Material, gravity, guess: str, gamma: float,
+def build_inverse_problem(helix, F, H, material: Material, gravity, guess: str, gamma: float,
                           mu: np.ndarray) -> InverseProblem:
+    """The scaled SOCQP for gravity forces F (S, N, 3) and contact Jacobian H."""
     K = sh.stiffness(helix, material.stiffness_diag)
-    F = sh.gravity_force(helix, material.linear_density, gravity, kin)
     q0_guess = rest_curvature_guess(helix, guess)
     inv_k = helix.to_flat(np.divide(1.0, K, out=np.zeros_like(K), where=K > 0)).ravel()
     q = helix.to_flat(helix.curvatures).ravel()
@@ -147,9 +147,8 @@ def build_inverse_problem(helix, kin, H, material: Material, gravity, guess: str
                           b=b_scaled, mu=np.asarray(mu, dtype=np.float64))
 
 
-def rest_curvatures_with_contacts(helix, material, gravity, H, forces_flat, kin=None) -> np.ndarray:
-    """q0 = q - K^-1 (F + H^T r), (S, N, 3)."""
-    F = sh.gravity_force(helix, material.linear_density, gravity, kin)
+def rest_curvatures_with_contacts(helix, material, F, H, forces_flat) -> np.ndarray:
+    """q0 = q - K^-1 (F + H^T r), (S, N, 3), F the gravity forces (S, N, 3)."""
     K = sh.stiffness(helix, material.stiffness_diag)
     HtR = helix.from_flat((H.T @ forces_flat).reshape(-1, 3))
     return helix.curvatures - np.divide(F + HtR, K, out=np.zeros_like(F), where=K > 0)
@@ -293,7 +292,8 @@ def invert_groom(groom: Groom, head=None, params: InversionParams | None = None,
                               "radius_m": float(contacts.radius)}
         mu = np.full(len(contacts.strand_a), material.friction)
         with timer.stage("solve"):
-            problem = build_inverse_problem(helix, kin, H, material, gravity, params.guess, params.gamma, mu)
+            F = sh.gravity_force(helix, material.linear_density, gravity, kin)
+            problem = build_inverse_problem(helix, F, H, material, gravity, params.guess, params.gamma, mu)
             solve = _solve(problem, helix, params)
         forces = solve["forces"]
         report["solve"] = {k: v for k, v in solve.items() if k != "forces"}
@@ -307,7 +307,7 @@ def invert_groom(groom: Groom, head=None, params: InversionParams | None = None,
                 f"residual {solve['residual']:.3e} after {solve['iterations']} iterations",
                 solve["status"], solve["residual"])
         with timer.stage("rest_curvatures"):
-            rest = rest_curvatures_with_contacts(helix, material, gravity, H, forces.ravel(), kin)
+            rest = rest_curvatures_with_contacts(helix, material, F, H, forces.ravel())
     else:
         with timer.stage("rest_curvatures"):
             rest = isolated_rest_curvatures(helix, material, gravity)
