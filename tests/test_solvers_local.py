@@ -177,6 +177,34 @@ def test_warm_start_is_used_and_harmless():
     np.testing.assert_allclose(warm, cold, rtol=1e-8, atol=1e-10 * np.abs(R).max())
 
 
+@pytest.mark.parametrize("law", ["soc", "coulomb"])
+def test_absolute_tolerance_bounds_the_natural_map(law):
+    """atol: a slip solve may stop early, but only once ||r - P_K(r - u_eff / s)|| <= atol (s = tr A / 3),
+    and it does stop earlier than the 1e-13 relative default (fewer Newton steps, a looser answer)."""
+    from groomtool.solvers.cones import natural_map_norm, law_code
+
+    rng = np.random.default_rng(11)
+    A, C, R = batch(rng, law, 0.3, 1000)
+    warm = R * (1 + 1e-2 * rng.normal(size=R.shape))
+    atol = 1e-6 * np.abs(R).max()
+    tight, _ = solve_local(A, C, 0.3, law, r0=warm)
+    loose, status = solve_local(A, C, 0.3, law, r0=warm, atol=atol)
+    assert np.all(status != FAILED)
+    code = law_code(law)
+
+    def natural(r):
+        out = []
+        for k in range(len(A)):
+            u = A[k] @ r[k] + C[k]
+            out.append(natural_map_norm(code, 0.3, 3.0 / np.trace(A[k]), *r[k], *u))
+        return np.array(out)
+
+    e_loose, e_tight = natural(loose), natural(tight)
+    assert e_loose.max() <= atol * (1 + 1e-9)
+    assert e_tight.max() < 1e-11 * np.abs(R).max()
+    assert e_loose.max() > 10 * e_tight.max()  # it did stop early somewhere
+
+
 def test_local_rejects_negative_mu():
     with pytest.raises(ValueError):
         solve_local(np.eye(3), np.ones(3), -0.1)

@@ -88,7 +88,7 @@ def _sym9(M, i):
 
 
 @njit(cache=True, inline="always", fastmath=_FM)
-def _local_update(law, mu, s, An, Ainv, ok, i, c0, c1, c2, r, omega, tol, max_newton):
+def _local_update(law, mu, s, An, Ainv, ok, i, c0, c1, c2, r, omega, tol, max_newton, atol):
     """Solve contact i's local problem u_i = W_ii r_i + c_i (c_i: everything but the diagonal term);
     returns (status, new r_i).  omega != 1: c_i <- omega c_i + (omega - 1) W_ii r_i (over-relaxation)."""
     A = _sym9(An, i)
@@ -104,11 +104,11 @@ def _local_update(law, mu, s, An, Ainv, ok, i, c0, c1, c2, r, omega, tol, max_ne
         c0 = omega * c0 + (omega - 1.0) * w0
         c1 = omega * c1 + (omega - 1.0) * w1
         c2 = omega * c2 + (omega - 1.0) * w2
-    return solve_block(law, mu[i], si, A, Ai, ok[i], c0, c1, c2, r0, r1, r2, tol, max_newton)
+    return solve_block(law, mu[i], si, A, Ai, ok[i], c0, c1, c2, r0, r1, r2, tol, max_newton, atol)
 
 
 @njit(cache=True, fastmath=_FM)
-def sweep_upper(law, indptr, indices, blocks, b, mu, s, An, Ainv, ok, omega, r, acc, tol, max_newton):
+def sweep_upper(law, indptr, indices, blocks, b, mu, s, An, Ainv, ok, omega, r, acc, tol, max_newton, atol):
     """One forward sweep on the upper block triangle of W (natural order): c_i = b_i + acc_i +
     sum_{j > i} W_ij r_j (old values), acc_i = sum_{j < i} W_ji^T r_j (new values, scattered by the
     rows before i).  r (m, 3) updated in place; acc (m, 3) is scratch.  Returns local failures."""
@@ -132,7 +132,7 @@ def sweep_upper(law, indptr, indices, blocks, b, mu, s, An, Ainv, ok, omega, r, 
             u0 += blocks[p, 0, 0] * x0 + blocks[p, 0, 1] * x1 + blocks[p, 0, 2] * x2
             u1 += blocks[p, 1, 0] * x0 + blocks[p, 1, 1] * x1 + blocks[p, 1, 2] * x2
             u2 += blocks[p, 2, 0] * x0 + blocks[p, 2, 1] * x1 + blocks[p, 2, 2] * x2
-        st, n0, n1, n2 = _local_update(law, mu, s, An, Ainv, ok, i, u0, u1, u2, r, omega, tol, max_newton)
+        st, n0, n1, n2 = _local_update(law, mu, s, An, Ainv, ok, i, u0, u1, u2, r, omega, tol, max_newton, atol)
         if st == FAILED:
             fails += 1
         r[i, 0] = n0
@@ -149,7 +149,8 @@ def sweep_upper(law, indptr, indices, blocks, b, mu, s, An, Ainv, ok, omega, r, 
 
 @njit(cache=True, fastmath=_FM)
 def sweep_matrix_free(
-    law, order, h_ptr, h_cols, h_vals, g_ptr, g_cols, g_vals, gamma2, b, mu, s, An, Ainv, ok, omega, r, v, tol, max_newton
+    law, order, h_ptr, h_cols, h_vals, g_ptr, g_cols, g_vals, gamma2, b, mu, s, An, Ainv, ok, omega, r, v, tol, max_newton,
+    atol,
 ):
     """One sweep keeping v = D H^T r: u_i = H_i v + 2 gamma r_i + b_i, then v += (H D)_i^T dr_i."""
     fails = 0
@@ -172,7 +173,7 @@ def sweep_matrix_free(
         u0 -= si * (A[0] * r0 + A[1] * r1 + A[2] * r2)
         u1 -= si * (A[3] * r0 + A[4] * r1 + A[5] * r2)
         u2 -= si * (A[6] * r0 + A[7] * r1 + A[8] * r2)
-        st, n0, n1, n2 = _local_update(law, mu, s, An, Ainv, ok, i, u0, u1, u2, r, omega, tol, max_newton)
+        st, n0, n1, n2 = _local_update(law, mu, s, An, Ainv, ok, i, u0, u1, u2, r, omega, tol, max_newton, atol)
         if st == FAILED:
             fails += 1
         d0 = n0 - r[i, 0]
@@ -289,11 +290,13 @@ class AssembledOperator:
         out[self.order] = r
         return out.reshape(-1)
 
-    def sweep(self, law, omega, r, continuing=False, tol=LOCAL_TOL, max_newton=NEWTON_MAX_ITER) -> int:
+    def sweep(self, law, omega, r, continuing=False, tol=LOCAL_TOL, max_newton=NEWTON_MAX_ITER, atol=0.0) -> int:
+        """One sweep over r (m, 3) in place; local solves to the relative tol or the absolute atol
+        (local.solve_block).  Returns the number of failed local solves."""
         W = self.W
         return sweep_upper(
             law, W.indptr, W.indices, W.blocks, self.b, self.mu, self.s, self.An, self.Ainv, self.ok,
-            float(omega), r, self.acc, tol, max_newton,
+            float(omega), r, self.acc, tol, max_newton, float(atol),
         )
 
     def velocity(self, r: np.ndarray) -> np.ndarray:
@@ -335,14 +338,14 @@ class MatrixFreeOperator:
         """v = D H^T r exactly (drops the drift of the incremental updates)."""
         packed_transpose_apply(self.G.ptr, self.G.cols, self.G.vals, r, self.n, self.v)
 
-    def sweep(self, law, omega, r, continuing=False, tol=LOCAL_TOL, max_newton=NEWTON_MAX_ITER) -> int:
+    def sweep(self, law, omega, r, continuing=False, tol=LOCAL_TOL, max_newton=NEWTON_MAX_ITER, atol=0.0) -> int:
         """continuing: r is the output of the previous sweep (or of velocity()), so v is already D H^T r."""
         H, G = self.H, self.G
         if not continuing:
             self._refresh_v(r)
         return sweep_matrix_free(
             law, self.order, H.ptr, H.cols, H.vals, G.ptr, G.cols, G.vals, self.gamma2, self.b, self.mu,
-            self.s, self.An, self.Ainv, self.ok, float(omega), r, self.v, tol, max_newton,
+            self.s, self.An, self.Ainv, self.ok, float(omega), r, self.v, tol, max_newton, float(atol),
         )
 
     def velocity(self, r: np.ndarray) -> np.ndarray:
@@ -400,6 +403,8 @@ def run_gauss_seidel(
     scale: float | None = None,
     time_limit: float | None = None,
     stall_window: int | None = None,
+    local_tol_fraction: float = 1e-3,
+    callback=None,
 ) -> GSOutcome:
     """Sweep until residual <= tol (residual.py; checked every ``check_every`` sweeps) or max_sweeps.
 
@@ -408,8 +413,13 @@ def run_gauss_seidel(
     fixed-point residual ||G(x) - x|| grows tenfold over the best seen restarts the history.
     stall_window: stop (outcome.stalled) when the best residual of the last ``stall_window`` sweeps is not
     half the best before them (Gauss-Seidel on the Coulomb law can cycle).
-    The returned r is always a Gauss-Seidel image (so each r_i solves its local problem exactly) and
-    its residual is measured exactly; non-convergence is reported, never hidden."""
+    local_tol_fraction: each local solve stops once its natural map is below this fraction of the
+    global target (tol * scale, in the residual's units) or at local.LOCAL_TOL relative, whichever
+    comes first (contacts with tiny forces then take one Newton step instead of three or four).
+    callback(sweeps, residual): called at every residual check (progress bars).
+    The returned r is always a Gauss-Seidel image (so each r_i solves its local problem, to within
+    local_tol_fraction of the target) and its residual is measured exactly; non-convergence is
+    reported, never hidden."""
     code = law_code(law)
     if omega != 1.0 and code != SOC:
         raise ValueError("over-relaxation (omega != 1) is only valid for the SOC law")
@@ -420,6 +430,7 @@ def run_gauss_seidel(
     if scale is None:
         scale = _res.residual_scale(op.b, op.rho)
     mu, rho = op.mu, op.rho
+    atol = max(0.0, float(local_tol_fraction)) * tol * scale
 
     def measure(r):
         emax, _ = _res.residual_max_rms(code, r, op.velocity(r), mu, rho)
@@ -450,11 +461,13 @@ def run_gauss_seidel(
         else:
             g = x  # plain Gauss-Seidel updates in place
             gf = g.reshape(-1)
-        fails += op.sweep(code, omega, g, continuing=g is x and sweeps > 0)
+        fails += op.sweep(code, omega, g, continuing=g is x and sweeps > 0, atol=atol)
         sweeps += 1
         if sweeps % check_every == 0 or sweeps == max_sweeps:
             res = measure(g)
             history.append((sweeps, res, time.perf_counter() - t0))
+            if callback is not None:
+                callback(sweeps, res)
             if res <= tol or not math.isfinite(res):
                 break
             if time_limit is not None and time.perf_counter() - t0 > time_limit:

@@ -256,15 +256,16 @@ def _newton_step(law, mu, A, c0, c1, c2, r0, r1, r2, F0, F1, F2):
 
 
 @njit(cache=True, fastmath=_FM)
-def newton(law, mu, A, c0, c1, c2, r0, r1, r2, tol, max_iter):
+def newton(law, mu, A, c0, c1, c2, r0, r1, r2, tol, max_iter, atol=0.0):
     """Non-smooth Newton on F(r) = r - P_K(r - u_eff) with an Armijo line search on ||F||.
-    Converged when ||F|| <= tol * max(1, ||r||).  Returns (converged, r0, r1, r2, ||F||, iterations).
-    (Squared norms throughout: no square roots on the hot path.)"""
+    Converged when ||F|| <= max(tol * max(1, ||r||), atol).  Returns (converged, r0, r1, r2, ||F||,
+    iterations).  (Squared norms throughout: no square roots on the hot path.)"""
     F0, F1, F2 = _natural_map(law, mu, A, c0, c1, c2, r0, r1, r2)
     f2 = F0 * F0 + F1 * F1 + F2 * F2
     tol2 = tol * tol
+    atol2 = atol * atol
     for it in range(max_iter):
-        if f2 <= tol2 * max(1.0, r0 * r0 + r1 * r1 + r2 * r2):
+        if f2 <= max(tol2 * max(1.0, r0 * r0 + r1 * r1 + r2 * r2), atol2):
             return True, r0, r1, r2, math.sqrt(f2), it
         ok, d0, d1, d2 = _newton_step(law, mu, A, c0, c1, c2, r0, r1, r2, F0, F1, F2)
         if not ok:
@@ -283,11 +284,11 @@ def newton(law, mu, A, c0, c1, c2, r0, r1, r2, tol, max_iter):
                 break
             t *= 0.5
         if not accepted:
-            return f2 <= tol2 * max(1.0, r0 * r0 + r1 * r1 + r2 * r2), r0, r1, r2, math.sqrt(f2), it
+            return f2 <= max(tol2 * max(1.0, r0 * r0 + r1 * r1 + r2 * r2), atol2), r0, r1, r2, math.sqrt(f2), it
         r0, r1, r2 = s0, s1, s2
         F0, F1, F2 = G0, G1, G2
         f2 = g2
-    return f2 <= tol2 * max(1.0, r0 * r0 + r1 * r1 + r2 * r2), r0, r1, r2, math.sqrt(f2), max_iter
+    return f2 <= max(tol2 * max(1.0, r0 * r0 + r1 * r1 + r2 * r2), atol2), r0, r1, r2, math.sqrt(f2), max_iter
 
 
 # ----------------------------------------------------------------------------------------------
@@ -600,9 +601,10 @@ def singular_stick(mu, A, c0, c1, c2):
 # the local solver
 # ----------------------------------------------------------------------------------------------
 @njit(cache=True, fastmath=_FM)
-def solve_normalized(law, mu, A, Ainv, has_inv, c0, c1, c2, w0, w1, w2, tol, max_newton):
+def solve_normalized(law, mu, A, Ainv, has_inv, c0, c1, c2, w0, w1, w2, tol, max_newton, atol=0.0):
     """Local solve in normalised units (tr A = 3, ||c|| = 1; Ainv = A^{-1} if has_inv).
-    (w0, w1, w2): warm start.  Returns (status, r0, r1, r2)."""
+    (w0, w1, w2): warm start.  Slip is solved to ||F|| <= max(tol max(1, ||r||), atol).
+    Returns (status, r0, r1, r2)."""
     cn = math.sqrt(c1 * c1 + c2 * c2)
     # 1. take-off: r = 0 and u = c satisfies the law
     if law == SOC:
@@ -631,7 +633,7 @@ def solve_normalized(law, mu, A, Ainv, has_inv, c0, c1, c2, w0, w1, w2, tol, max
             w0, w1, w2 = project_cone(mu, s0, s1, s2)
         if w0 == 0.0 and w1 == 0.0 and w2 == 0.0:
             w0, w1, w2 = project_cone(mu, -c0, -c1, -c2)
-    conv, r0, r1, r2, f, _ = newton(law, mu, A, c0, c1, c2, w0, w1, w2, tol, max_newton)
+    conv, r0, r1, r2, f, _ = newton(law, mu, A, c0, c1, c2, w0, w1, w2, tol, max_newton, atol)
     if conv:
         return SLIP_NEWTON, r0, r1, r2
     # 4. exact enumerative slip
@@ -672,10 +674,12 @@ def normalize_block(A):
 
 
 @njit(cache=True, fastmath=_FM)
-def solve_block(law, mu, s, An, Ainv, has_inv, c0, c1, c2, r0, r1, r2, tol, max_newton):
+def solve_block(law, mu, s, An, Ainv, has_inv, c0, c1, c2, r0, r1, r2, tol, max_newton, atol=0.0):
     """Local solve in physical units for a pre-normalised block (s, An = A/s, Ainv = An^{-1}):
     scales c to unit norm, solves, scales back.  (r0, r1, r2) is the warm start.
-    Returns (status, r0, r1, r2)."""
+    atol: an absolute bound on the natural map e = r - P_K(r - u_eff / s) (units of r) that is good
+    enough (Gauss-Seidel passes a fraction of its global tolerance: a contact whose forces are tiny
+    next to the largest ones needs no 1e-13 relative accuracy).  Returns (status, r0, r1, r2)."""
     cm = max(abs(c0), max(abs(c1), abs(c2)))
     if cm == 0.0:
         return TAKEOFF, 0.0, 0.0, 0.0
@@ -686,19 +690,19 @@ def solve_block(law, mu, s, An, Ainv, has_inv, c0, c1, c2, r0, r1, r2, tol, max_
     ic = 1.0 / cn
     k = s * ic
     st, x0, x1, x2 = solve_normalized(
-        law, mu, An, Ainv, has_inv, c0 * ic, c1 * ic, c2 * ic, r0 * k, r1 * k, r2 * k, tol, max_newton
+        law, mu, An, Ainv, has_inv, c0 * ic, c1 * ic, c2 * ic, r0 * k, r1 * k, r2 * k, tol, max_newton, atol * k
     )
     back = cn / s
     return st, x0 * back, x1 * back, x2 * back
 
 
 @njit(cache=True, fastmath=_FM)
-def _solve_local_batch(law, mu, A, c, r_init, tol, max_newton, r_out, status):
+def _solve_local_batch(law, mu, A, c, r_init, tol, max_newton, atol, r_out, status):
     for i in range(A.shape[0]):
         s, An, Ainv, ok = normalize_block(A[i])
         st, x0, x1, x2 = solve_block(
             law, mu[i], s, An, Ainv, ok, c[i, 0], c[i, 1], c[i, 2],
-            r_init[i, 0], r_init[i, 1], r_init[i, 2], tol, max_newton,
+            r_init[i, 0], r_init[i, 1], r_init[i, 2], tol, max_newton, atol,
         )
         r_out[i, 0] = x0
         r_out[i, 1] = x1
@@ -706,10 +710,11 @@ def _solve_local_batch(law, mu, A, c, r_init, tol, max_newton, r_out, status):
         status[i] = st
 
 
-def solve_local(A, c, mu, law="soc", r0=None, tol=LOCAL_TOL, max_newton=NEWTON_MAX_ITER):
+def solve_local(A, c, mu, law="soc", r0=None, tol=LOCAL_TOL, max_newton=NEWTON_MAX_ITER, atol=0.0):
     """Solve one or many 3x3 local problems u = A r + c under ``law`` ('soc' or 'coulomb').
 
     A: (3, 3) or (k, 3, 3); c: (3,) or (k, 3); mu: float or (k,); r0: optional warm start.
+    A slip solution is accurate to ||r - P_K(r - u_eff / s)|| <= max(tol (relative), atol), s = tr(A)/3.
     Returns (r, status) with status codes from this module (STATUS_NAMES)."""
     A = np.asarray(A, dtype=np.float64)
     single = A.ndim == 2
@@ -722,7 +727,7 @@ def solve_local(A, c, mu, law="soc", r0=None, tol=LOCAL_TOL, max_newton=NEWTON_M
     r_init = np.zeros((k, 3)) if r0 is None else np.ascontiguousarray(np.asarray(r0, float).reshape(k, 3))
     r = np.empty((k, 3))
     status = np.empty(k, dtype=np.int64)
-    _solve_local_batch(law_code(law), mu, A, c, r_init, float(tol), int(max_newton), r, status)
+    _solve_local_batch(law_code(law), mu, A, c, r_init, float(tol), int(max_newton), float(atol), r, status)
     if single:
         return r[0], int(status[0])
     return r, status
