@@ -115,7 +115,7 @@ def test_gs_matches_clarabel(m, n_strands, dofs, mu, dense, seed):
     mus = rng.choice([0.0, 0.2, 0.5, 2.0], size=m) if mu == "mixed" else mu
     P = problems.random_factored_problem(m, n_strands, dofs, dense=dense, mu=mus, seed=seed)
     gs = solve_contact_problem(P, "soc", "gs", tol=1e-10)
-    ref = solve_contact_problem(P, "soc", "clarabel", tol=1e-10)
+    ref = solve_contact_problem(P, "soc", "clarabel", polish=False)  # clarabel's own point: independent
     assert gs.converged and gs.residual <= 1e-10
     assert ref.status == "Solved"
     assert gs.objective <= ref.objective + 1e-7 * max(1.0, abs(ref.objective))
@@ -151,7 +151,7 @@ def test_methods_agree_on_hair(variant):
     gs = solve_contact_problem(P, method="gs", tol=1e-9)
     ap = solve_contact_problem(P, method="apgd", tol=1e-9)
     mf = solve_contact_problem(P, method="gs", form="matrix_free", tol=1e-9)
-    cl = solve_contact_problem(P, method="clarabel")
+    cl = solve_contact_problem(P, method="clarabel", polish=False)
     for res in (gs, ap, mf):
         assert res.converged and res.residual <= 1e-9, res.method
         assert res.objective == pytest.approx(cl.objective, rel=1e-7)
@@ -172,7 +172,7 @@ def test_matrix_free_and_assembled_identical():
 @pytest.mark.parametrize("order", ["natural", "columns", "columns_reversed"])
 def test_orders_reach_the_same_solution(order):
     P = hair(150, seed=8)
-    ref = solve_contact_problem(P, method="clarabel")
+    ref = solve_contact_problem(P, method="clarabel", polish=False)
     res = solve_contact_problem(P, tol=1e-9, order=order)
     assert res.converged
     assert res.objective == pytest.approx(ref.objective, rel=1e-7)
@@ -288,10 +288,29 @@ def test_assembled_api():
         solve_socqp(W[:-1, :-1], P.b[:-1], P.mu)
 
 
+@pytest.mark.parametrize("api", ["factored", "assembled"])
+def test_clarabel_point_is_polished_to_the_tolerance(api):
+    """clarabel stops on its duality gap, not on the natural-map residual; Gauss-Seidel sweeps from its
+    optimum bring the residual below tol without moving the objective."""
+    P = hair(300, seed=17)
+    if api == "factored":
+        raw = solve_contact_problem(P, method="clarabel", polish=False)
+        res = solve_contact_problem(P, method="clarabel", tol=1e-11)
+    else:
+        W = P.assemble_W()
+        raw = solve_socqp(W, P.b, P.mu, method="clarabel", polish=False)
+        res = solve_socqp(W, P.b, P.mu, method="clarabel", tol=1e-11)
+    assert raw.status == "Solved" and raw.residual > 1e-11  # so the polish has work to do
+    assert res.converged and res.residual <= 1e-11
+    assert res.info["polish_sweeps"] > 0 and res.info["clarabel_residual"] == pytest.approx(raw.residual, rel=1e-6)
+    assert res.objective == pytest.approx(raw.objective, rel=1e-7)
+    assert res.cone_violation <= 1e-12
+
+
 def test_frictionless_contacts_in_clarabel():
     """mu = 0 must become r_T = 0, r_N >= 0 (clarabel's SOC(3) would leave r_N free)."""
     P = hair(60, seed=13, mu_range=(0.0, 0.0))
-    cl = solve_contact_problem(P, method="clarabel")
+    cl = solve_contact_problem(P, method="clarabel", polish=False)
     gs = solve_contact_problem(P, tol=1e-10)
     r = cl.r.reshape(-1, 3)
     assert np.abs(r[:, 1:]).max() < 1e-9 and r[:, 0].min() > -1e-9

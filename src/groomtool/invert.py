@@ -228,10 +228,10 @@ class InversionResult:
         return write_result(self, outdir, formats=formats)
 
 
-def _progress(total, desc, quiet):
+def _progress(total, desc, quiet, unit="strand"):
     from tqdm.auto import tqdm
 
-    return tqdm(total=total, desc=desc, disable=quiet, unit="strand", leave=False)
+    return tqdm(total=total, desc=desc, disable=quiet, unit=unit, leave=False)
 
 
 def invert_groom(groom: Groom, head=None, params: InversionParams | None = None,
@@ -294,7 +294,7 @@ def invert_groom(groom: Groom, head=None, params: InversionParams | None = None,
         with timer.stage("solve"):
             F = sh.gravity_force(helix, material.linear_density, gravity, kin)
             problem = build_inverse_problem(helix, F, H, material, gravity, params.guess, params.gamma, mu)
-            solve = _solve(problem, helix, params)
+            solve = _solve(problem, helix, params, quiet)
         forces = solve["forces"]
         report["solve"] = {k: v for k, v in solve.items() if k != "forces"}
         report["solve"]["objective"] = problem.objective(forces.ravel())
@@ -451,8 +451,9 @@ def choose_solver(solver: str, n_contacts: int) -> str:
     return "clarabel" if n_contacts <= AUTO_CLARABEL_MAX_CONTACTS else "gs"
 
 
-def _solve(problem: InverseProblem, helix: sh.SuperHelix, params: InversionParams) -> dict:
-    """Solve the scaled SOCQP with the chosen solver; forces returned in newtons (m, 3)."""
+def _solve(problem: InverseProblem, helix: sh.SuperHelix, params: InversionParams, quiet: bool = True) -> dict:
+    """Solve the scaled SOCQP with the chosen solver; forces returned in newtons (m, 3).  The progress
+    bar counts Gauss-Seidel sweeps (clarabel's polish included) and shows the residual."""
     from .solvers import ContactProblem, solve_contact_problem
 
     inv_k = problem.inv_stiffness
@@ -460,9 +461,20 @@ def _solve(problem: InverseProblem, helix: sh.SuperHelix, params: InversionParam
     blocks = [np.diag(inv_k[a:b] ** 2 / problem.w_scale) for a, b in zip(offsets[:-1], offsets[1:])]
     cp = ContactProblem(H=problem.H, D_blocks=blocks, dof_offsets=offsets, gamma=problem.gamma,
                         b=problem.b, mu=problem.mu)
-    res = solve_contact_problem(cp, law="soc", method=choose_solver(params.solver, len(problem.mu)),
-                                tol=params.solver_tolerance, max_iter=params.max_iterations)
+    method = choose_solver(params.solver, len(problem.mu))
+    with _progress(params.max_iterations, f"contact solve ({method}, {len(problem.mu):,} contacts)", quiet,
+                   unit="sweep") as bar:
+        def show(sweeps, residual):
+            bar.update(max(0, min(sweeps, bar.total) - bar.n))
+            bar.set_postfix_str(f"residual {residual:.1e} (target {params.solver_tolerance:.0e})")
+
+        res = solve_contact_problem(cp, law="soc", method=method, tol=params.solver_tolerance,
+                                    max_iter=params.max_iterations, callback=show)
     forces = np.asarray(res.r).reshape(-1, 3) * problem.f_scale
     status = "solved" if res.converged else str(res.status)
-    return {"forces": forces, "solver": res.method, "status": status, "converged": bool(res.converged),
-            "iterations": int(res.iterations), "residual": float(res.residual), "time_s": float(res.time_s)}
+    out = {"forces": forces, "solver": res.method, "status": status, "converged": bool(res.converged),
+           "iterations": int(res.iterations), "residual": float(res.residual), "time_s": float(res.time_s)}
+    if "polish_sweeps" in res.info:  # clarabel's point finished by Gauss-Seidel (solvers.api)
+        out["polish_sweeps"] = int(res.info["polish_sweeps"])
+        out["clarabel_residual"] = float(res.info["clarabel_residual"])
+    return out

@@ -184,7 +184,8 @@ def summary(result, written) -> str:
     if "contacts" in r:
         c, s = r["contacts"], r["solve"]
         lines.append(f"  contacts     {c['total']} ({c['strand_head']} head, {c['strand_strand']} strand/strand)")
-        lines.append(f"  solve        {s['solver']}: {s['status']}, {s['iterations']} iterations, "
+        polish = f" + {s['polish_sweeps']} Gauss-Seidel polish sweeps" if s.get("polish_sweeps") else ""
+        lines.append(f"  solve        {s['solver']}: {s['status']}, {s['iterations']} iterations{polish}, "
                      f"residual {s['residual']:.2e}, cone violation {s['cone_violation']:.1e} N")
     lines.append(f"  equilibrium  max relative residual {r['equilibrium']['max_relative_residual']:.2e}")
     st = r["stability"]

@@ -140,6 +140,7 @@ def run_apgd(
     check_every: int = 10,
     scale: float | None = None,
     time_limit: float | None = None,
+    callback=None,
 ) -> APGDOutcome:
     """APGD (module docstring) on u = W r + b given x -> W x (matvec(x, out), x/out (m, 3))."""
     t0 = time.perf_counter()
@@ -184,6 +185,8 @@ def run_apgd(
             emax, _ = _res.residual_max_rms(SOC, x, wx + b, mu, rho)
             res = emax / scale
             history.append((k, res, time.perf_counter() - t0))
+            if callback is not None:
+                callback(k, res)
             if time_limit is not None and time.perf_counter() - t0 > time_limit:
                 break
             if not math.isfinite(res):
