@@ -14,8 +14,120 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.sparse as sp
+from numba import njit
 
 from ..rods import superhelix as sh
+
+
+def contact_jacobian(helix: sh.SuperHelix, contacts, kin: sh.Kinematics | None = None) -> sp.csr_matrix:
+    """H as a sparse (3m, 3E) matrix, E the number of real elements of all strands.
+
+    Written directly in CSR form (sorted indices) by :func:`_fill_csr`: the 3 rows of contact i share
+    the columns of elements 0..elem_a of strand a and 0..elem_b of strand b (one range, the union,
+    for a self-contact, whose overlapping blocks are summed); memory O(nnz(H)).
+    """
+    kin = kin if kin is not None else sh.kinematics(helix)
+    dof_offsets = helix.flat_offsets()
+    n_dofs = 3 * int(dof_offsets[-1])
+    m = len(contacts.strand_a)
+    if m == 0:
+        return sp.csr_matrix((0, n_dofs))
+    frames = np.ascontiguousarray(contacts.frame, dtype=np.float64).reshape(m, 3, 3)
+    strand_a = np.ascontiguousarray(contacts.strand_a, dtype=np.int64)
+    strand_b = np.ascontiguousarray(contacts.strand_b, dtype=np.int64)
+    elem_a, x_a, own_a = sh.point_jacobian_parts(helix, strand_a, np.asarray(contacts.s_a), kin)
+    other = np.flatnonzero(strand_b >= 0)
+    elem_b = np.full(m, -1, dtype=np.int64)
+    x_b = np.zeros((m, 3))
+    own_b = np.zeros((m, 3, 3))
+    if len(other):
+        elem_b[other], x_b[other], own_b[other] = sh.point_jacobian_parts(
+            helix, strand_b[other], np.asarray(contacts.s_b)[other], kin)
+    strand_b = np.where(strand_b >= 0, strand_b, -1)
+
+    # blocks per contact (each block: 3 columns in each of the contact's 3 rows)
+    same = strand_b == strand_a
+    blocks = np.where(same, np.maximum(elem_a, elem_b) + 1, elem_a + 1 + (elem_b + 1))  # elem_b + 1 = 0: head
+    row_len = np.repeat(3 * blocks, 3)
+    nnz = int(row_len.sum())
+    idx_dtype = np.int32 if max(nnz, n_dofs) < np.iinfo(np.int32).max else np.int64
+    indptr = np.zeros(3 * m + 1, dtype=idx_dtype)
+    np.cumsum(row_len, out=indptr[1:])
+    data = np.empty(nnz)
+    indices = np.empty(nnz, dtype=idx_dtype)
+    B = np.ascontiguousarray(sh.upstream_jacobian_terms(kin))
+    _fill_csr(strand_a, elem_a, np.ascontiguousarray(x_a), np.ascontiguousarray(own_a),
+              strand_b, elem_b, x_b, own_b, frames, B, np.ascontiguousarray(kin.Theta),
+              dof_offsets, indptr, data, indices)
+    H = sp.csr_matrix((data, indices, indptr), shape=(3 * m, n_dofs), copy=False)
+    H.has_sorted_indices = True  # by construction (strand ranges in dof order, elements increasing)
+    return H
+
+
+@njit(cache=True)
+def _add_side(F, sign, x, own, B, Theta, strand, elem, col0, pos0, start, row_len, accumulate, J, data, indices):
+    """Write (or add, if ``accumulate``) sign F J_k for k = 0..elem (J_k = B_k - [x]x Theta_k,
+    J_elem = own) at block positions pos0 + k of the 3 rows starting at data[start], row_len apart,
+    columns 3 (col0 + k) + c."""
+    for k in range(elem + 1):
+        if k == elem:
+            for a in range(3):
+                for b in range(3):
+                    J[a, b] = own[a, b]
+        else:
+            for b in range(3):
+                t0, t1, t2 = Theta[strand, k, 0, b], Theta[strand, k, 1, b], Theta[strand, k, 2, b]
+                J[0, b] = B[strand, k, 0, b] - (x[1] * t2 - x[2] * t1)
+                J[1, b] = B[strand, k, 1, b] - (x[2] * t0 - x[0] * t2)
+                J[2, b] = B[strand, k, 2, b] - (x[0] * t1 - x[1] * t0)
+        base = start + 3 * (pos0 + k)
+        col = 3 * (col0 + k)
+        for r in range(3):
+            at = base + r * row_len
+            for c in range(3):
+                v = sign * (F[r, 0] * J[0, c] + F[r, 1] * J[1, c] + F[r, 2] * J[2, c])
+                if accumulate:
+                    data[at + c] += v
+                else:
+                    data[at + c] = v
+                    indices[at + c] = col + c
+
+
+@njit(cache=True)
+def _fill_csr(strand_a, elem_a, x_a, own_a, strand_b, elem_b, x_b, own_b, frames, B, Theta, offsets,
+              indptr, data, indices):
+    """Every entry of H, contact by contact: the blocks of the strand with the smaller dof offset
+    first; a self-contact writes its longer range and adds the other side onto it."""
+    J = np.empty((3, 3))
+    for i in range(strand_a.shape[0]):
+        start = indptr[3 * i]
+        row_len = indptr[3 * i + 1] - start
+        sa, sb, ea, eb = strand_a[i], strand_b[i], elem_a[i], elem_b[i]
+        F = frames[i]
+        if sb < 0:
+            _add_side(F, 1.0, x_a[i], own_a[i], B, Theta, sa, ea, offsets[sa], 0, start, row_len, False, J,
+                      data, indices)
+        elif sb == sa:
+            if ea >= eb:
+                _add_side(F, 1.0, x_a[i], own_a[i], B, Theta, sa, ea, offsets[sa], 0, start, row_len, False, J,
+                          data, indices)
+                _add_side(F, -1.0, x_b[i], own_b[i], B, Theta, sb, eb, offsets[sb], 0, start, row_len, True, J,
+                          data, indices)
+            else:
+                _add_side(F, -1.0, x_b[i], own_b[i], B, Theta, sb, eb, offsets[sb], 0, start, row_len, False, J,
+                          data, indices)
+                _add_side(F, 1.0, x_a[i], own_a[i], B, Theta, sa, ea, offsets[sa], 0, start, row_len, True, J,
+                          data, indices)
+        elif offsets[sa] <= offsets[sb]:
+            _add_side(F, 1.0, x_a[i], own_a[i], B, Theta, sa, ea, offsets[sa], 0, start, row_len, False, J,
+                      data, indices)
+            _add_side(F, -1.0, x_b[i], own_b[i], B, Theta, sb, eb, offsets[sb], ea + 1, start, row_len, False, J,
+                      data, indices)
+        else:
+            _add_side(F, -1.0, x_b[i], own_b[i], B, Theta, sb, eb, offsets[sb], 0, start, row_len, False, J,
+                      data, indices)
+            _add_side(F, 1.0, x_a[i], own_a[i], B, Theta, sa, ea, offsets[sa], eb + 1, start, row_len, False, J,
+                      data, indices)
 
 
 def _side_entries(helix, kin, strand, s, frames, sign, dof_offsets):
@@ -32,8 +144,8 @@ def _side_entries(helix, kin, strand, s, frames, sign, dof_offsets):
     return rows.ravel(), cols.ravel(), vals.ravel()
 
 
-def contact_jacobian(helix: sh.SuperHelix, contacts, kin: sh.Kinematics | None = None) -> sp.csr_matrix:
-    """H as a sparse (3m, 3E) matrix, E the number of real elements of all strands."""
+def _contact_jacobian_reference(helix: sh.SuperHelix, contacts, kin: sh.Kinematics | None = None) -> sp.csr_matrix:
+    """The original dense-then-filter H (via :func:`sh.point_jacobians`, O(m N) memory): tests only."""
     kin = kin if kin is not None else sh.kinematics(helix)
     dof_offsets = helix.flat_offsets()
     n_dofs = 3 * int(dof_offsets[-1])

@@ -386,6 +386,28 @@ def point_jacobians(helix: SuperHelix, strand, s, kin: Kinematics | None = None)
     return J, elem
 
 
+def point_jacobian_parts(helix: SuperHelix, strand, s, kin: Kinematics | None = None):
+    """The point-dependent pieces of :func:`point_jacobians` without the dense (P, N, 3, 3) array.
+
+    Returns elem (P,), the points x = C(s) (P, 3) and the own-element blocks R_e D_e(t) (P, 3, 3);
+    block k < elem of dC/dq is B_k - [x]x Theta_k with B from :func:`upstream_jacobian_terms`.
+    """
+    kin = kin if kin is not None else kinematics(helix)
+    strand = np.asarray(strand, dtype=np.int64)
+    elem, t = locate(helix, strand, s)
+    w = helix.curvatures[strand, elem]
+    Re = kin.R[strand, elem]
+    x = kin.C[strand, elem] + np.einsum("pab,pb->pa", Re, local_position(t, w))
+    own = Re @ local_position_jacobian(t, w)
+    return elem, x, own
+
+
+def upstream_jacobian_terms(kin: Kinematics) -> np.ndarray:
+    """B_k = R_k D_k(l_k) + [C_{k+1}]x Theta_k per element, (S, N, 3, 3): dC/domega_k = B_k - [x]x Theta_k
+    for a point x beyond element k."""
+    return kin.R[:, :-1] @ kin.D + skew(kin.C[:, 1:]) @ kin.Theta
+
+
 # --------------------------------------------------------------------------- energy and forces
 def stiffness(helix: SuperHelix, stiffness_diag) -> np.ndarray:
     """K as (S, N, 3): K_j = l_j (GJ, EI1, EI2); zero on padding."""
