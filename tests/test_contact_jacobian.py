@@ -8,7 +8,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from groomtool.contact.jacobian import _contact_jacobian_reference, contact_jacobian, generalized_contact_force
+from groomtool.contact.jacobian import (
+    _contact_jacobian_reference,
+    _generalized_contact_force_reference,
+    contact_jacobian,
+    generalized_contact_force,
+)
 from groomtool.rods import superhelix as sh
 
 
@@ -151,6 +156,24 @@ def test_H_equals_reference_on_random_grooms(seed, scale, n_strands, max_element
     rng = np.random.default_rng(seed)
     helix = _random_groom(rng, n_strands, max_elements, scale)
     _assert_same_as_reference(helix, _random_contacts(rng, helix, m))
+
+
+@given(seed=st.integers(0, 10_000), scale=st.sampled_from([0.0, 1e-6, 5.0, 40.0]),
+       n_strands=st.integers(1, 5), max_elements=st.integers(1, 9), m=st.integers(1, 25))
+@settings(max_examples=30, deadline=None)
+def test_generalized_force_by_suffix_sums_equals_dense_reference(seed, scale, n_strands, max_elements, m):
+    """The O(S N + m) suffix-sum H^T r equals the dense point-Jacobian one and H^T r of the CSR H."""
+    rng = np.random.default_rng(seed)
+    helix = _random_groom(rng, n_strands, max_elements, scale)
+    contacts = _random_contacts(rng, helix, m)
+    r = rng.normal(size=(len(contacts.strand_a), 3))
+    fast = generalized_contact_force(helix, contacts, r)
+    ref = _generalized_contact_force_reference(helix, contacts, r)
+    tol = 1e-12 * max(1.0, np.abs(ref).max())
+    assert np.abs(fast - ref).max() <= tol
+    via_h = helix.from_flat((contact_jacobian(helix, contacts).T @ r.ravel()).reshape(-1, 3))
+    assert np.abs(fast - via_h).max() <= tol
+    assert not np.any(fast[~helix.element_mask])
 
 
 def test_H_equals_reference_on_every_kind_of_contact():

@@ -172,10 +172,50 @@ def _contact_jacobian_reference(helix: sh.SuperHelix, contacts, kin: sh.Kinemati
 
 def generalized_contact_force(helix: sh.SuperHelix, contacts, forces: np.ndarray,
                               kin: sh.Kinematics | None = None) -> np.ndarray:
-    """H^T r computed point by point (independently of the assembled H): (S, N, 3).
+    """H^T r from the point forces, without H: (S, N, 3), in O(S N + m) time and memory.
 
-    The world force on strand a is F_i^T r_i at C(s_a), its opposite on strand b.
+    The world force on strand a is f = F_i^T r_i at x = C(s_a), its opposite on strand b.  With
+    dC/domega_k = B_k - [x]x Theta_k for a point beyond element k, f contributes
+    B_k^T f + Theta_k^T (x cross f) to element k, so per strand, with the suffix sums F_{>k} (forces on
+    points beyond element k) and M_{>k} (their moments x cross f about the origin),
+
+        Q_k = B_k^T F_{>k} + Theta_k^T M_{>k} + sum over the points on element k of own_p^T f_p.
+
+    (The equilibrium check uses this; it never builds H.  _generalized_contact_force_reference is the
+    dense point-Jacobian version the tests compare with.)
     """
+    kin = kin if kin is not None else sh.kinematics(helix)
+    S, N = helix.curvatures.shape[:2]
+    out = np.zeros((S, N, 3))
+    frames = np.asarray(contacts.frame, dtype=np.float64).reshape(-1, 3, 3)
+    world = np.einsum("pji,pj->pi", frames, np.asarray(forces, dtype=np.float64).reshape(-1, 3))
+    force_bins = np.zeros((S, N, 3))
+    moment_bins = np.zeros((S, N, 3))
+    for strand, s, f in ((contacts.strand_a, contacts.s_a, world),
+                         (contacts.strand_b, contacts.s_b, -world)):
+        strand = np.asarray(strand, dtype=np.int64)
+        mask = strand >= 0
+        if not np.any(mask):
+            continue
+        strand, f = strand[mask], f[mask]
+        elem, x, own = sh.point_jacobian_parts(helix, strand, np.asarray(s)[mask], kin)
+        np.add.at(out, (strand, elem), np.einsum("pab,pa->pb", own, f))
+        np.add.at(force_bins, (strand, elem), f)
+        np.add.at(moment_bins, (strand, elem), np.cross(x, f))
+    # sums over the elements strictly beyond k
+    beyond_f = np.cumsum(force_bins[:, ::-1], axis=1)[:, ::-1]
+    beyond_m = np.cumsum(moment_bins[:, ::-1], axis=1)[:, ::-1]
+    beyond_f = np.concatenate([beyond_f[:, 1:], np.zeros((S, 1, 3))], axis=1)
+    beyond_m = np.concatenate([beyond_m[:, 1:], np.zeros((S, 1, 3))], axis=1)
+    B = sh.upstream_jacobian_terms(kin)
+    out += np.einsum("snab,sna->snb", B, beyond_f) + np.einsum("snab,sna->snb", kin.Theta, beyond_m)
+    out[~helix.element_mask] = 0.0
+    return out
+
+
+def _generalized_contact_force_reference(helix: sh.SuperHelix, contacts, forces: np.ndarray,
+                                         kin: sh.Kinematics | None = None) -> np.ndarray:
+    """H^T r with the dense (P, N, 3, 3) point Jacobians of sh.point_jacobians: tests only."""
     kin = kin if kin is not None else sh.kinematics(helix)
     out = np.zeros(helix.curvatures.shape)
     frames = np.asarray(contacts.frame, dtype=np.float64)
