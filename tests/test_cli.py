@@ -79,6 +79,27 @@ def test_bad_material_is_a_user_error(example, tmp_path, capsys):
     assert "young_modulus" in capsys.readouterr().err
 
 
+def test_solver_tolerance_and_sweep_budget(example, tmp_path, capsys):
+    """--solver-tolerance and --max-sweeps reach the solve; a budget too small for the tolerance is exit 2
+    with the residual, nothing written; a non-positive tolerance is a user error."""
+    groom_path, head_path = example
+    base = ["invert", str(groom_path), "--head", str(head_path), "--contacts", "all", "--contact-radius", "5e-4",
+            "--solver", "gs", "-q"]
+    out = tmp_path / "o"
+    assert main(base + ["--solver-tolerance", "1e-4", "-o", str(out)]) == EXIT_OK
+    report = json.loads((out / "report.json").read_text())
+    assert report["parameters"]["solver_tolerance"] == 1e-4
+    assert report["solve"]["residual"] <= 1e-4 and report["contacts"]["total"] > 0
+    capsys.readouterr()
+    assert main(base + ["--solver-tolerance", "1e-14", "--max-sweeps", "3", "-o", str(tmp_path / "p")]) \
+        == EXIT_NOT_CONVERGED
+    err = capsys.readouterr().err
+    assert "did not converge" in err and "residual" in err and "target 1e-14" in err
+    assert not (tmp_path / "p").exists()
+    assert main(base + ["--solver-tolerance", "0", "-o", str(tmp_path / "q")]) == EXIT_USER_ERROR
+    assert "solver_tolerance" in capsys.readouterr().err
+
+
 def test_corrupt_data_names_file_and_strand(tmp_path, capsys):
     bad = tmp_path / "bad.data"
     # 2 strands declared, the second is cut short

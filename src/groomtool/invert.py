@@ -27,12 +27,14 @@ CONTACT_MODES = ("none", "head", "all")
 
 
 class SolverFailure(RuntimeError):
-    """The contact solver did not reach its tolerance: carries the status and the residual."""
+    """The contact solver did not reach its tolerance: carries the status, the residual and the report
+    up to the solve (fit, contacts, solve details, timings_s of the stages run)."""
 
-    def __init__(self, message: str, status: str, residual: float):
+    def __init__(self, message: str, status: str, residual: float, report: dict | None = None):
         super().__init__(message)
         self.status = status
         self.residual = residual
+        self.report = report or {}
 
 
 @dataclass
@@ -65,6 +67,10 @@ class InversionParams:
             raise ValueError(f"tolerance must be > 0, got {self.tolerance}")
         if self.rod_segments is not None and self.rod_segments < 2:
             raise ValueError(f"rod_segments must be >= 2, got {self.rod_segments}")
+        if not (self.solver_tolerance > 0):
+            raise ValueError(f"solver_tolerance must be > 0, got {self.solver_tolerance}")
+        if self.max_iterations < 1:
+            raise ValueError(f"max_iterations must be >= 1, got {self.max_iterations}")
 
 
 def isolated_rest_curvatures(helix: sh.SuperHelix, material: Material, gravity, kin=None) -> np.ndarray:
@@ -302,10 +308,12 @@ def invert_groom(groom: Groom, head=None, params: InversionParams | None = None,
         report["solve"]["gamma"] = params.gamma
         report["solve"]["guess"] = params.guess
         if not solve["converged"]:
+            report["timings_s"] = dict(timer.stages)
             raise SolverFailure(
                 f"contact solver {solve['solver']} did not converge: status {solve['status']}, "
-                f"residual {solve['residual']:.3e} after {solve['iterations']} iterations",
-                solve["status"], solve["residual"])
+                f"residual {solve['residual']:.3e} after {solve['iterations']} iterations "
+                f"(target {params.solver_tolerance:.0e})",
+                solve["status"], solve["residual"], report)
         with timer.stage("rest_curvatures"):
             rest = rest_curvatures_with_contacts(helix, material, F, H, forces.ravel())
     else:

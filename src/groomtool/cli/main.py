@@ -83,6 +83,12 @@ def build_parser() -> argparse.ArgumentParser:
                      help="regularisation of the contact forces, relative to the Delassus diagonal (default 1e-4; see docs/maths.md)")
     inv.add_argument("--solver", choices=["clarabel", "gs", "auto"], default="auto",
                      help="contact solver: clarabel (exact, small cases), gs (Gauss-Seidel), auto (by size)")
+    inv.add_argument("--solver-tolerance", type=float, default=1e-8, metavar="TOL",
+                     help="optimality of the contact forces: the scaled natural-map residual to reach (default "
+                          "1e-8; any forces in their cones give an exact equilibrium, this only decides how close "
+                          "the rest curvatures are to the guess; see docs/solvers.md)")
+    inv.add_argument("--max-sweeps", type=int, default=5000, metavar="N",
+                     help="Gauss-Seidel sweep budget of the contact solve (default 5000)")
     inv.add_argument("--rod-segments", type=int, default=None, metavar="N",
                      help="resolution of the discrete (Cosserat/DER) rest data: N equal segments per strand "
                           "(default: the input's own vertices)")
@@ -172,7 +178,8 @@ def _invert_params(args, scale):
         material=_material(args), tolerance=DEFAULT_TOLERANCE_M if args.tolerance is None else args.tolerance * scale,
         relative_tolerance=args.relative_tolerance, contacts=args.contacts,
         contact_radius=None if args.contact_radius is None else args.contact_radius * scale,
-        guess=args.guess, solver=args.solver, snap_roots=args.snap_roots, rod_segments=args.rod_segments,
+        guess=args.guess, solver=args.solver, solver_tolerance=args.solver_tolerance, max_iterations=args.max_sweeps,
+        snap_roots=args.snap_roots, rod_segments=args.rod_segments,
         **({} if args.gamma is None else {"gamma": args.gamma}))
 
 
