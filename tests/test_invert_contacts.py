@@ -155,3 +155,24 @@ def test_no_contact_mode_is_the_isolated_inversion(sphere):
     res = invert_groom(groom, head=sphere, params=_params(contacts="none"))
     assert res.contacts is None and "contacts" not in res.report
     assert np.allclose(res.rest_curvatures, isolated_rest_curvatures(res.helix, MAT, res.gravity))
+
+
+def test_contact_held_ratios_skip_strands_without_active_contacts(sphere):
+    """Strands with no loaded contact keep their isolated ratio (passed in, not recomputed): the same
+    numbers as computing every strand's restricted Hessian."""
+    from groomtool.invert import contact_held_unstable
+    from groomtool.stability import stiffness_ratios
+
+    strands = [draped_strand(0.3, 2e-4, azimuth=a) for a in (0.0, 0.7)]
+    strands.append(draped_strand(0.3, 3e-3, azimuth=1.4))  # hovers 3 mm above: no contact
+    groom = Groom.from_strands(strands, source="draped+free")
+    res = invert_groom(groom, head=sphere, params=_params())
+    loaded = set(np.asarray(res.contacts.strand_a)[res.forces[:, 0] > 0].tolist())
+    assert 2 not in loaded and loaded  # a strand without loaded contacts, and some with
+    every = np.arange(groom.n_strands)
+    isolated = stiffness_ratios(res.helix, MAT.stiffness_diag, MAT.linear_density, res.gravity)
+    H = contact_jacobian(res.helix, res.contacts)
+    full = contact_held_unstable(res.helix, MAT, res.gravity, res.contacts, res.forces, H, every)
+    fast = contact_held_unstable(res.helix, MAT, res.gravity, res.contacts, res.forces, H, every, isolated)
+    np.testing.assert_allclose(fast, full, rtol=1e-9)
+    assert fast[2] == isolated[2]

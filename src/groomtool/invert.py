@@ -345,7 +345,7 @@ def invert_groom(groom: Groom, head=None, params: InversionParams | None = None,
     }
     if contacts is not None and len(unstable):
         with timer.stage("stability_with_contacts"):
-            held = contact_held_unstable(helix, material, gravity, contacts, forces, H, unstable)
+            held = contact_held_unstable(helix, material, gravity, contacts, forces, H, unstable, ratio[unstable])
         report["stability"]["unstable_with_contacts"] = int(np.count_nonzero(held >= 1.0))
         report["stability"]["criterion_with_contacts"] = (
             "Hessian restricted to motions that keep every contact point with a positive normal force fixed")
@@ -404,18 +404,29 @@ def discrete_rest_data(groom: Groom, helix, material: Material, gravity, contact
     return arrays, report
 
 
-def contact_held_unstable(helix, material: Material, gravity, contacts, forces, H, strands) -> np.ndarray:
+def contact_held_unstable(helix, material: Material, gravity, contacts, forces, H, strands,
+                          isolated_ratios=None) -> np.ndarray:
     """The stiffness ratio of each listed strand when its active contacts (r_N > 0) hold it:
-    the Hessian K - dF/dq restricted to motions with H_i dq = 0 for those contacts."""
+    the Hessian K - dF/dq restricted to motions with H_i dq = 0 for those contacts.  A strand without
+    an active contact keeps its isolated ratio (``isolated_ratios``, computed when not given)."""
     from .stability import contact_held_ratio
 
     active = np.flatnonzero(forces[:, 0] > 0)
-    owners = [np.asarray(contacts.strand_a)[active], np.asarray(contacts.strand_b)[active]]
+    strand_a, strand_b = np.asarray(contacts.strand_a)[active], np.asarray(contacts.strand_b)[active]
+    # active contacts grouped by strand (a contact between two strands is listed under both)
+    owner = np.concatenate([strand_a, strand_b[strand_b >= 0]])
+    which = np.concatenate([active, active[strand_b >= 0]])
+    order = np.argsort(owner, kind="stable")
+    owner, which = owner[order], which[order]
     cols = 3 * helix.flat_offsets()
     H = H.tocsr()
     out = np.empty(len(strands))
     for k, s in enumerate(strands):
-        mine = active[(owners[0] == s) | (owners[1] == s)]
+        lo, hi = np.searchsorted(owner, [s, s + 1])
+        mine = np.unique(which[lo:hi])
+        if not len(mine) and isolated_ratios is not None:
+            out[k] = isolated_ratios[k]
+            continue
         rows = (3 * mine[:, None] + np.arange(3)).ravel()
         blocked = H[rows][:, cols[s]:cols[s + 1]].toarray() if len(rows) else None
         out[k] = contact_held_ratio(helix, s, material.stiffness_diag, material.linear_density, gravity, blocked)
