@@ -176,3 +176,56 @@ def test_contact_held_ratios_skip_strands_without_active_contacts(sphere):
     fast = contact_held_unstable(res.helix, MAT, res.gravity, res.contacts, res.forces, H, every, isolated)
     np.testing.assert_allclose(fast, full, rtol=1e-9)
     assert fast[2] == isolated[2]
+
+
+def test_redundant_strand_fraction_counts_rows_against_dofs():
+    """A strand is redundant when, up to some element e, its contact ends outnumber the elements 0..e
+    (3 rows each against 3 dofs each)."""
+    from types import SimpleNamespace
+
+    from groomtool.invert import redundant_strand_fraction
+
+    lengths = np.full((3, 6), 0.01)
+    helix = sh.SuperHelix(np.zeros((3, 3)), np.tile(np.eye(3), (3, 1, 1)), lengths, np.zeros((3, 6, 3)),
+                          np.full(3, 6))
+    mid = lambda e: 0.01 * e + 0.005  # noqa: E731  (arc length in the middle of element e)
+    # strand 0: two ends on element 0 (redundant); strand 1: ends on elements 0, 2, 4 (not);
+    # strand 2: ends on elements 1, 1 and 1 (3 ends against elements 0..1: redundant)
+    contacts = SimpleNamespace(
+        strand_a=np.array([0, 0, 1, 1, 2]), s_a=np.array([mid(0), mid(0), mid(0), mid(2), mid(1)]),
+        strand_b=np.array([-1, -1, 2, -1, 1]), s_b=np.array([np.nan, np.nan, mid(1), np.nan, mid(4)]))
+    assert redundant_strand_fraction(helix, contacts) == pytest.approx(1 / 3)
+    contacts.strand_b = np.array([-1, -1, 2, -1, -1])  # strand 2 now has two ends on element 1: not redundant
+    assert redundant_strand_fraction(helix, contacts) == pytest.approx(1 / 3)
+    # strand 0 one end, strand 1 ends on elements 0, 1, 2, strand 2 two ends on element 1: nobody redundant
+    contacts.strand_a = np.array([0, 1, 1, 1, 2])
+    contacts.s_a = np.array([mid(0), mid(0), mid(1), mid(2), mid(1)])
+    assert redundant_strand_fraction(helix, contacts) == 0.0
+    contacts.s_a = np.array([mid(0), mid(0), mid(0), mid(2), mid(1)])  # strand 1: two ends on element 0
+    assert redundant_strand_fraction(helix, contacts) == pytest.approx(1 / 3)
+
+
+def test_auto_solver_rule():
+    from groomtool.invert import AUTO_CLARABEL_MAX_CONTACTS, choose_solver
+
+    assert choose_solver("auto", 500, 0.0) == "gs"
+    assert choose_solver("auto", 500, 1.0) == "clarabel"
+    assert choose_solver("auto", AUTO_CLARABEL_MAX_CONTACTS + 1, 1.0) == "gs"
+    assert choose_solver("clarabel", 10**6, 0.0) == "clarabel"
+
+
+def test_auto_falls_back_to_clarabel_when_gauss_seidel_does_not_converge(draped, sphere, monkeypatch):
+    """auto picked Gauss-Seidel (sparse contacts) but its budget ran out: clarabel takes over, the report says so.
+    (The draped groom is dense; its redundancy is reported as 0 here so that auto picks Gauss-Seidel.)"""
+    import sys
+
+    groom, ref = draped
+    assert ref.report["solve"]["redundant_strand_fraction"] > 0.25
+    monkeypatch.setattr(sys.modules["groomtool.invert"], "redundant_strand_fraction", lambda helix, contacts: 0.0)
+    res = invert_groom(groom, head=sphere, params=_params(solver="auto", max_iterations=1))
+    solve = res.report["solve"]
+    assert solve["redundant_strand_fraction"] == 0.0
+    assert solve["fallback_from"]["solver"] == "gs" and solve["fallback_from"]["iterations"] == 1
+    assert solve["fallback_from"]["status"] == "max_iter"
+    assert solve["solver"] == "clarabel" and solve["status"] == "solved"
+    assert solve["objective"] == pytest.approx(ref.report["solve"]["objective"], rel=1e-7)

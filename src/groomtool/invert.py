@@ -300,7 +300,7 @@ def invert_groom(groom: Groom, head=None, params: InversionParams | None = None,
         with timer.stage("solve"):
             F = sh.gravity_force(helix, material.linear_density, gravity, kin)
             problem = build_inverse_problem(helix, F, H, material, gravity, params.guess, params.gamma, mu)
-            solve = _solve(problem, helix, params, quiet)
+            solve = _solve(problem, helix, params, quiet, redundant_strand_fraction(helix, contacts))
         forces = solve["forces"]
         report["solve"] = {k: v for k, v in solve.items() if k != "forces"}
         report["solve"]["objective"] = problem.objective(forces.ravel())
@@ -458,21 +458,49 @@ def _snap_groom_roots(groom: Groom, head, snap_roots):
 
 
 AUTO_CLARABEL_MAX_CONTACTS = 10_000
+AUTO_GS_MAX_REDUNDANT = 0.25
 
 
-def choose_solver(solver: str, n_contacts: int) -> str:
-    """``auto``: clarabel (interior point, exact, robust to the many redundant contacts of strands
-    lying on a head, where Gauss-Seidel converges slowly) up to 10,000 contacts (measured: the
-    200-strand example's 6,094 contacts in 10 s); the Gauss-Seidel solver beyond, where clarabel's
-    factorisations stop scaling (bench/results/solvers.md)."""
+def redundant_strand_fraction(helix: sh.SuperHelix, contacts) -> float:
+    """Of the strands that carry contacts, the fraction on which, up to some element e, the contact ends
+    give more constraint rows (3 each) than the dofs of elements 0..e (3 each).  There W = H D H^T +
+    2 gamma I has directions held by gamma alone and Gauss-Seidel stalls (docs/solvers.md section 9):
+    measured 3 % on sparse real contacts that converge, 85-100 % on dense ones that stall."""
+    strand = np.concatenate([np.asarray(contacts.strand_a), np.asarray(contacts.strand_b)])
+    arc = np.concatenate([np.asarray(contacts.s_a), np.asarray(contacts.s_b)])
+    keep = strand >= 0
+    strand, arc = strand[keep].astype(np.int64), arc[keep]
+    if not len(strand):
+        return 0.0
+    elem, _ = sh.locate(helix, strand, arc)
+    order = np.lexsort((elem, strand))
+    strand, elem = strand[order], elem[order]
+    first = np.searchsorted(strand, strand)  # index of each end's strand's first end
+    rank = np.arange(len(strand)) - first + 1  # ends on this strand at elements <= elem (ties: the last one counts)
+    over = rank > elem + 1
+    return float(len(np.unique(strand[over])) / len(np.unique(strand)))
+
+
+def choose_solver(solver: str, n_contacts: int, redundant_fraction: float = 1.0) -> str:
+    """``auto``: Gauss-Seidel where it converges: sparse contacts (at most 25 % of the contact-carrying
+    strands redundant, redundant_strand_fraction), or more than 10,000 contacts, where clarabel's
+    factorisations stop scaling; clarabel (then polished by Gauss-Seidel) for dense contacts up to 10,000.
+    Measured (docs/solvers.md section 9, bench/results/invert.md): harolongo's 8,379 head contacts (0 %
+    redundant) GS 5.1 s vs clarabel + polish 12.9 s; usc10k's 11,717 head contacts (1 %) GS 3.8 s; the
+    200-strand example's 6,094 contacts (100 %) clarabel 10 s while GS stalls."""
     if solver != "auto":
         return solver
-    return "clarabel" if n_contacts <= AUTO_CLARABEL_MAX_CONTACTS else "gs"
+    if n_contacts > AUTO_CLARABEL_MAX_CONTACTS or redundant_fraction <= AUTO_GS_MAX_REDUNDANT:
+        return "gs"
+    return "clarabel"
 
 
-def _solve(problem: InverseProblem, helix: sh.SuperHelix, params: InversionParams, quiet: bool = True) -> dict:
+def _solve(problem: InverseProblem, helix: sh.SuperHelix, params: InversionParams, quiet: bool = True,
+           redundant_fraction: float = 1.0) -> dict:
     """Solve the scaled SOCQP with the chosen solver; forces returned in newtons (m, 3).  The progress
-    bar counts Gauss-Seidel sweeps (clarabel's polish included) and shows the residual."""
+    bar counts Gauss-Seidel sweeps (clarabel's polish included) and shows the residual.  ``auto``:
+    choose_solver; if its Gauss-Seidel does not converge on at most 10,000 contacts, clarabel takes over
+    (report: fallback_from)."""
     from .solvers import ContactProblem, solve_contact_problem
 
     inv_k = problem.inv_stiffness
@@ -480,15 +508,27 @@ def _solve(problem: InverseProblem, helix: sh.SuperHelix, params: InversionParam
     blocks = [np.diag(inv_k[a:b] ** 2 / problem.w_scale) for a, b in zip(offsets[:-1], offsets[1:])]
     cp = ContactProblem(H=problem.H, D_blocks=blocks, dof_offsets=offsets, gamma=problem.gamma,
                         b=problem.b, mu=problem.mu)
-    method = choose_solver(params.solver, len(problem.mu))
-    with _progress(params.max_iterations, f"contact solve ({method}, {len(problem.mu):,} contacts)", quiet,
-                   unit="sweep") as bar:
-        def show(sweeps, residual):
-            bar.update(max(0, min(sweeps, bar.total) - bar.n))
-            bar.set_postfix_str(f"residual {residual:.1e} (target {params.solver_tolerance:.0e})")
+    m = len(problem.mu)
+    method = choose_solver(params.solver, m, redundant_fraction)
 
-        res = solve_contact_problem(cp, law="soc", method=method, tol=params.solver_tolerance,
-                                    max_iter=params.max_iterations, callback=show)
+    def run(method):
+        with _progress(params.max_iterations, f"contact solve ({method}, {m:,} contacts)", quiet,
+                       unit="sweep") as bar:
+            def show(sweeps, residual):
+                bar.update(max(0, min(sweeps, bar.total) - bar.n))
+                bar.set_postfix_str(f"residual {residual:.1e} (target {params.solver_tolerance:.0e})")
+
+            # the sweep budget is Gauss-Seidel's; clarabel keeps its own iteration limit
+            budget = None if method == "clarabel" else params.max_iterations
+            return solve_contact_problem(cp, law="soc", method=method, tol=params.solver_tolerance,
+                                         max_iter=budget, callback=show)
+
+    res = run(method)
+    fallback = None
+    if params.solver == "auto" and method == "gs" and not res.converged and m <= AUTO_CLARABEL_MAX_CONTACTS:
+        fallback = {"solver": "gs", "status": str(res.status), "iterations": int(res.iterations),
+                    "residual": float(res.residual), "time_s": float(res.time_s)}
+        res = run("clarabel")
     forces = np.asarray(res.r).reshape(-1, 3) * problem.f_scale
     status = "solved" if res.converged else str(res.status)
     out = {"forces": forces, "solver": res.method, "status": status, "converged": bool(res.converged),
@@ -496,4 +536,8 @@ def _solve(problem: InverseProblem, helix: sh.SuperHelix, params: InversionParam
     if "polish_sweeps" in res.info:  # clarabel's point finished by Gauss-Seidel (solvers.api)
         out["polish_sweeps"] = int(res.info["polish_sweeps"])
         out["clarabel_residual"] = float(res.info["clarabel_residual"])
+    if fallback is not None:
+        out["fallback_from"] = fallback
+        out["time_s"] += fallback["time_s"]
+    out["redundant_strand_fraction"] = float(redundant_fraction)
     return out

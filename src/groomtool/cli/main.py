@@ -194,6 +194,10 @@ def summary(result, written) -> str:
         polish = f" + {s['polish_sweeps']} Gauss-Seidel polish sweeps" if s.get("polish_sweeps") else ""
         lines.append(f"  solve        {s['solver']}: {s['status']}, {s['iterations']} iterations{polish}, "
                      f"residual {s['residual']:.2e}, cone violation {s['cone_violation']:.1e} N")
+        if s.get("fallback_from"):
+            f = s["fallback_from"]
+            lines.append(f"               (Gauss-Seidel first: {f['status']} at residual {f['residual']:.1e} after "
+                         f"{f['iterations']} sweeps, then clarabel)")
     lines.append(f"  equilibrium  max relative residual {r['equilibrium']['max_relative_residual']:.2e}")
     st = r["stability"]
     if st["unstable_strands"]:
