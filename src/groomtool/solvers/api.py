@@ -104,14 +104,14 @@ def _run_gs_family(op, law, method, tol, max_iter, r0, options, info):
 POLISH_MAX_SWEEPS = 2000
 
 
-def _polish_with_gs(op, r, residual, tol, info, status, callback=None):
+def _polish_with_gs(op, r, residual, tol, info, status, callback=None, scale=None):
     """clarabel's interior point stops on its own duality gap, which leaves the natural-map residual
     (residual.py) at 1e-7..1e-4 on hair problems.  A few Gauss-Seidel sweeps from its point (each
     contact's local problem solved exactly, warm-started at the optimum) bring it below tol; the
     result then converged only if Gauss-Seidel did.  Returns (r, converged, status)."""
     if residual <= tol or not np.all(np.isfinite(r)):
         return r, residual <= tol, status
-    out = run_gauss_seidel(op, "soc", tol=tol, max_sweeps=POLISH_MAX_SWEEPS, r0=r, callback=callback)
+    out = run_gauss_seidel(op, "soc", tol=tol, max_sweeps=POLISH_MAX_SWEEPS, r0=r, callback=callback, scale=scale)
     info.update(polish_sweeps=out.sweeps, polish_s=out.solve_s, clarabel_status=status,
                 clarabel_residual=float(residual))
     if not out.converged:
@@ -176,7 +176,7 @@ def _solve_assembled(W, b, mu, law, method, tol, max_iter, r0, options) -> Solve
     residual = _res.residual(r, u, mu, rho, scale, law=law)
     if method == "clarabel" and polish and status in ("Solved", "AlmostSolved"):
         op = AssembledOperator.from_sparse(W, b, mu)
-        r, conv, status = _polish_with_gs(op, r, residual, tol, info, status, callback)
+        r, conv, status = _polish_with_gs(op, r, residual, tol, info, status, callback, options.get("scale"))
         u = W @ r + b
         residual = _res.residual(r, u, mu, rho, scale, law=law)
     return SolveResult(
@@ -283,12 +283,16 @@ def solve_contact_problem(
         conv = status == "Solved"
         info.update(form="factored", setup_s=out.setup_s, solve_s=out.solve_s, kkt_size=out.kkt_size)
         if polish and status in ("Solved", "AlmostSolved"):
-            residual = problem.residual(r, law=law)
+            if options.get("scale") is not None:
+                residual = _res.residual(r, problem.velocity(r), problem.mu, problem.rho(), float(options["scale"]),
+                                         law=law)
+            else:
+                residual = problem.residual(r, law=law)
             if residual > tol:
                 if form == "auto":
                     form = choose_form(problem)
                 op = AssembledOperator.from_problem(problem) if form == "assembled" else MatrixFreeOperator(problem)
-                r, conv, status = _polish_with_gs(op, r, residual, tol, info, status, callback)
+                r, conv, status = _polish_with_gs(op, r, residual, tol, info, status, callback, options.get("scale"))
     else:
         if form == "auto":
             form = choose_form(problem)
