@@ -109,8 +109,10 @@ def markdown(meta: dict, runs: list[dict]) -> str:
         "",
         f"{meta['date']}, Python {meta['python']}, {meta['cpus']} CPUs (shared machine; load average at the end "
         f"{', '.join(f'{x:.1f}' for x in meta['load_at_end'])}). One thread (numba, BLAS), each run in its own "
-        f"process, numba caches warm. Solver: `auto` (clarabel + Gauss-Seidel polish up to 10,000 contacts, "
-        f"Gauss-Seidel beyond) unless the row says otherwise, tolerance 1e-8, at most the row's sweep budget.",
+        f"process, numba caches warm. Solver: `auto` unless the row says otherwise (Gauss-Seidel for sparse contacts "
+        f"or beyond 10,000, clarabel + Gauss-Seidel polish for dense ones up to 10,000: docs/solvers.md section 9), "
+        f"tolerance 1e-8, at most the row's sweep budget (a row that is not converged stopped there; its later "
+        f"stages did not run).",
         "",
         "Stage columns are wall seconds of `invert_groom` (report.json `timings_s`); `cpu` is the process CPU "
         "time of invert_groom (loading excluded).",
@@ -153,9 +155,14 @@ def main() -> None:
     ap.add_argument("--append", action="store_true", help="add the rows to the existing results file")
     ap.add_argument("--timeout", type=float, default=1800)
     ap.add_argument("--out", type=Path, default=RESULTS / "invert")
+    ap.add_argument("--from-json", action="store_true", help="rewrite the .md from the .json")
     args = ap.parse_args()
     if args.child:
         print(json.dumps(run_child(json.loads(args.child))))
+        return
+    if args.from_json:
+        data = json.loads(args.out.with_suffix(".json").read_text())
+        args.out.with_suffix(".md").write_text(markdown(data["meta"], data["runs"]))
         return
     runs = []
     if args.append and args.out.with_suffix(".json").exists():
