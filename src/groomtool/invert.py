@@ -17,6 +17,8 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
+import scipy.sparse as sp
+from numba import njit
 
 from .groom import Groom
 from .material import Material
@@ -135,6 +137,19 @@ class InverseProblem:
         return 0.5 * float(y @ y) + self.gamma * self.w_scale * float(r @ r)
 
 
+@njit(cache=True)
+def _row_sums_of_squares(indptr, indices, data, scale):
+    """sum_j (H_ij scale_j)^2 per row of a CSR H (the diagonal of H diag(scale)^2 H^T)."""
+    out = np.zeros(indptr.shape[0] - 1)
+    for i in range(out.shape[0]):
+        acc = 0.0
+        for p in range(indptr[i], indptr[i + 1]):
+            v = data[p] * scale[indices[p]]
+            acc += v * v
+        out[i] = acc
+    return out
+
+
 def build_inverse_problem(helix, F, H, material: Material, gravity, guess: str, gamma: float,
                           mu: np.ndarray) -> InverseProblem:
     """The scaled SOCQP for gravity forces F (S, N, 3) and contact Jacobian H."""
@@ -143,10 +158,11 @@ def build_inverse_problem(helix, F, H, material: Material, gravity, guess: str, 
     inv_k = helix.to_flat(np.divide(1.0, K, out=np.zeros_like(K), where=K > 0)).ravel()
     q = helix.to_flat(helix.curvatures).ravel()
     d = q - inv_k * helix.to_flat(F).ravel() - helix.to_flat(q0_guess).ravel()
-    HK = H.multiply(inv_k[None, :]).tocsr()  # H K^-1
-    diag = np.asarray(HK.multiply(HK).sum(axis=1)).ravel()
+    # diag(H K^-2 H^T) and b = -H K^-1 d without forming H K^-1 (on harolongo H alone is 1.2 GB)
+    H = sp.csr_matrix(H)
+    diag = _row_sums_of_squares(H.indptr, H.indices, H.data, inv_k)
     w_scale = float(diag.mean()) if len(diag) and diag.mean() > 0 else 1.0
-    b = -(HK @ d)
+    b = -(H @ (inv_k * d))
     f_scale = material.linear_density * np.linalg.norm(gravity) * float(np.mean(helix.strand_lengths))
     b_scaled = b / (w_scale * f_scale)
     return InverseProblem(H=H, inv_stiffness=inv_k, d=d, gamma=gamma, w_scale=w_scale, f_scale=f_scale,
