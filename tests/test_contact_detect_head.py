@@ -164,6 +164,28 @@ def test_detect_contacts_combines_both_kinds(sphere):
     assert detect_contacts(pts, off, arc, head=sphere).radius == DEFAULT_CONTACT_RADIUS
 
 
+def test_detect_contacts_reports_its_passes(sphere):
+    """A progress bar is advanced once per pass and told which pass runs."""
+    class Bar:
+        def __init__(self):
+            self.n, self.names = 0, []
+
+        def update(self, k):
+            self.n += k
+
+        def set_postfix_str(self, name):
+            self.names.append(name)
+
+    x = np.linspace(-0.02, 0.02, 11)
+    pts, off, arc = ragged([np.column_stack([x, np.zeros_like(x), np.full_like(x, R + 0.5 * RC)])])
+    bar = Bar()
+    detect_contacts(pts, off, arc, RC, head=sphere, progress=bar)
+    assert bar.n == 2 and bar.names == ["strand/strand", "head"]
+    bar = Bar()
+    detect_contacts(pts, off, arc, RC, head=None, progress=bar)
+    assert bar.n == 1 and bar.names == ["strand/strand"]
+
+
 # ----------------------------------------------------------------------------------------- roots
 def test_root_gaps_and_snapping(sphere, sphere_surface):
     rng = np.random.default_rng(4)

@@ -304,8 +304,10 @@ def invert_groom(groom: Groom, head=None, params: InversionParams | None = None,
         kin = sh.kinematics(helix)
         with timer.stage("contacts"):
             pts, offsets, _, arc = sh.sample(helix, params.samples_per_element, kin)
-            contacts = detect_contacts(pts, offsets, arc, radius=params.contact_radius,
-                                       head=head, strand_strand=params.contacts == "all")
+            passes = int(params.contacts == "all") + int(head is not None)
+            with _progress(passes, "contacts", quiet, unit="pass") as bar:
+                contacts = detect_contacts(pts, offsets, arc, radius=params.contact_radius,
+                                           head=head, strand_strand=params.contacts == "all", progress=bar)
         with timer.stage("jacobian"):
             H = contact_jacobian(helix, contacts, kin)
         report["contacts"] = {"total": int(len(contacts.strand_a)),
