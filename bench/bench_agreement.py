@@ -53,7 +53,7 @@ from groomtool.fit import fit_groom  # noqa: E402
 from groomtool.invert import InversionParams, build_inverse_problem, cone_violation  # noqa: E402
 from groomtool.io import load_head, read_data  # noqa: E402
 from groomtool.rods import superhelix as sh  # noqa: E402
-from groomtool.solvers import ContactProblem, solve_contact_problem  # noqa: E402
+from groomtool.solvers import solve_contact_problem  # noqa: E402
 from groomtool.solvers.clarabel_socqp import solve_factored  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
@@ -84,11 +84,7 @@ def build(path: Path, head, radius: float, params: InversionParams):
     mu = np.full(len(contacts.strand_a), material.friction)
     F = sh.gravity_force(helix, material.linear_density, gravity, kin)
     problem = build_inverse_problem(helix, F, H, material, gravity, params.guess, params.gamma, mu)
-    inv_k = problem.inv_stiffness
-    offs = 3 * helix.flat_offsets()
-    blocks = [np.diag(inv_k[a:b] ** 2 / problem.w_scale) for a, b in zip(offs[:-1], offs[1:])]
-    cp = ContactProblem(H=problem.H, D_blocks=blocks, dof_offsets=offs, gamma=problem.gamma, b=problem.b,
-                        mu=problem.mu)
+    cp = problem.contact_problem(helix)
     return helix, contacts, problem, cp, time.perf_counter() - t0
 
 

@@ -131,6 +131,15 @@ class InverseProblem:
     b: np.ndarray
     mu: np.ndarray
 
+    def contact_problem(self, helix: sh.SuperHelix):
+        """The solvers' ContactProblem: W~ = H D H^T + 2 gamma I with D = K^-2 / w_scale per strand of
+        ``helix``.  D is diagonal and passed as one flat array (per-strand dense diagonal matrices,
+        as before, cost ~1 GB on harolongo only to be recognised as diagonal)."""
+        from .solvers import ContactProblem
+
+        return ContactProblem(H=self.H, D_blocks=self.inv_stiffness ** 2 / self.w_scale,
+                              dof_offsets=3 * helix.flat_offsets(), gamma=self.gamma, b=self.b, mu=self.mu)
+
     def objective(self, r: np.ndarray) -> float:
         """1/2 || K^-1 H^T r - d ||^2 + gamma_abs ||r||^2 in physical units (r in newtons)."""
         y = self.inv_stiffness * (self.H.T @ r) - self.d
@@ -519,13 +528,9 @@ def _solve(problem: InverseProblem, helix: sh.SuperHelix, params: InversionParam
     bar counts Gauss-Seidel sweeps (clarabel's polish included) and shows the residual.  ``auto``:
     choose_solver; if its Gauss-Seidel does not converge on at most 10,000 contacts, clarabel takes over
     (report: fallback_from)."""
-    from .solvers import ContactProblem, solve_contact_problem
+    from .solvers import solve_contact_problem
 
-    inv_k = problem.inv_stiffness
-    offsets = 3 * helix.flat_offsets()
-    blocks = [np.diag(inv_k[a:b] ** 2 / problem.w_scale) for a, b in zip(offsets[:-1], offsets[1:])]
-    cp = ContactProblem(H=problem.H, D_blocks=blocks, dof_offsets=offsets, gamma=problem.gamma,
-                        b=problem.b, mu=problem.mu)
+    cp = problem.contact_problem(helix)
     m = len(problem.mu)
     method = choose_solver(params.solver, m, redundant_fraction)
 

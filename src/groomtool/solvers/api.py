@@ -256,6 +256,14 @@ def choose_form(problem: ContactProblem) -> str:
     return "assembled" if c["assembled_flops"] <= ASSEMBLED_MIN_GAIN * c["matrix_free_flops"] else "matrix_free"
 
 
+def _factored_residual(problem: ContactProblem, r, law: str, scale=None, u=None) -> float:
+    """residual.py's residual of r, over the caller's ``scale`` when given (see run_gauss_seidel)."""
+    if scale is None:
+        return problem.residual(r, law=law, u=u)
+    u = problem.velocity(r) if u is None else u
+    return _res.residual(r, u, problem.mu, problem.rho(), float(scale), law=law)
+
+
 def solve_contact_problem(
     problem: ContactProblem,
     law: str = "soc",
@@ -290,11 +298,7 @@ def solve_contact_problem(
         conv = status == "Solved"
         info.update(form="factored", setup_s=out.setup_s, solve_s=out.solve_s, kkt_size=out.kkt_size)
         if polish and status in ("Solved", "AlmostSolved"):
-            if options.get("scale") is not None:
-                residual = _res.residual(r, problem.velocity(r), problem.mu, problem.rho(), float(options["scale"]),
-                                         law=law)
-            else:
-                residual = problem.residual(r, law=law)
+            residual = _factored_residual(problem, r, law, options.get("scale"))
             if residual > tol:
                 if form == "auto":
                     form = choose_form(problem)
@@ -322,10 +326,7 @@ def solve_contact_problem(
         status = _iterative_status(conv, res_solver, iters, max_iter)
         info.update(form=form, setup_s=setup_s)
     u = problem.velocity(r)
-    if options.get("scale") is not None:  # the caller's residual scale (see run_gauss_seidel)
-        residual = _res.residual(r, u, problem.mu, problem.rho(), float(options["scale"]), law=law)
-    else:
-        residual = problem.residual(r, law=law, u=u)
+    residual = _factored_residual(problem, r, law, options.get("scale"), u)
     return SolveResult(
         r=r, status=status, converged=bool(conv), residual=float(residual), iterations=int(iters),
         objective=float(0.5 * r @ (u + problem.b)), cone_violation=problem.cone_violation(r),
