@@ -229,3 +229,23 @@ def test_auto_falls_back_to_clarabel_when_gauss_seidel_does_not_converge(draped,
     assert solve["fallback_from"]["status"] == "max_iter"
     assert solve["solver"] == "clarabel" and solve["status"] == "solved"
     assert solve["objective"] == pytest.approx(ref.report["solve"]["objective"], rel=1e-7)
+
+
+def test_gauss_seidel_gives_up_early_on_dense_contacts_and_says_what_to_do(draped, sphere):
+    """Forced Gauss-Seidel on the dense draped groom: stopped once its rate projects past twice the budget,
+    long before the budget is spent; the error says how far it got and how to accept these forces."""
+    from groomtool.invert import GS_GIVE_UP, SolverFailure
+
+    groom, _ = draped
+    with pytest.raises(SolverFailure) as info:
+        invert_groom(groom, head=sphere, params=_params(solver="gs", max_iterations=1600))
+    exc = info.value
+    solve = exc.report["solve"]
+    assert exc.status == "stalled" and solve["status"] == "stalled"
+    assert solve["iterations"] < 1600 and solve["projected_sweeps"] > GS_GIVE_UP * 1600
+    msg = str(exc)
+    assert "would need about" in msg and "--solver-tolerance" in msg and "dense" in msg
+    # it was right to: twice the budget does not converge either
+    with pytest.raises(SolverFailure) as again:
+        invert_groom(groom, head=sphere, params=_params(solver="gs", max_iterations=int(GS_GIVE_UP * 1600)))
+    assert again.value.report["solve"]["residual"] > 1e-10

@@ -198,6 +198,58 @@ def test_non_convergence_is_reported():
         assert res.residual == pytest.approx(P.residual(res.r), rel=1e-9)
 
 
+def test_projected_sweeps_of_a_geometric_history():
+    from groomtool.solvers.gauss_seidel import projected_sweeps
+
+    hist = [(s, 10.0 ** (-s / 100), 0.0) for s in range(0, 401, 10)]  # one decade per 100 sweeps
+    assert projected_sweeps(hist, 1e-8) == pytest.approx(800.0)
+    assert projected_sweeps(hist, 1e-4) == 400.0  # already there
+    bump = hist[:-1] + [(400, 1.0, 0.0)]  # the best residual so far counts, not the last one
+    assert projected_sweeps(bump, 1e-8) == pytest.approx(400 + 4.1 * 200 / 1.9)  # best 10^-3.9, from 10^-2 at 200
+    flat = [(s, 1e-3, 0.0) for s in range(0, 401, 10)]
+    assert projected_sweeps(flat, 1e-8) == np.inf
+
+
+def _chain(m=100):
+    """Contacts coupled in a chain, W = tridiag(-1, 2, -1) (x) I3 + 1e-6 I: plain Gauss-Seidel's slowest
+    classic case (its rate is 1 - O(1 / m^2) per sweep)."""
+    T = sp.diags([-np.ones(m - 1), 2 * np.ones(m), -np.ones(m - 1)], [-1, 0, 1])
+    W = sp.kron(T, sp.identity(3)).tocsr() + 1e-6 * sp.identity(3 * m)
+    b = np.zeros(3 * m)
+    b[0::3] = -1.0
+    b[1::3] = 0.1
+    return W, b
+
+
+def test_give_up_stops_a_stalling_gauss_seidel_early():
+    W, b = _chain()
+    full = solve_socqp(W, b, 0.5, tol=1e-10, max_iter=2000, anderson=0)
+    assert not full.converged and full.status == "max_iter" and full.iterations == 2000
+    early = solve_socqp(W, b, 0.5, tol=1e-10, max_iter=2000, anderson=0, give_up=2.0)
+    assert early.status == "stalled" and not early.converged
+    assert early.iterations == 500  # judged from a quarter of the budget on (and GIVE_UP_MIN_SWEEPS)
+    projected = early.info["projected_sweeps"]
+    assert projected > 2 * 2000
+    assert early.residual > 1e-10 and early.residual == pytest.approx(full.info["history"][50][1], rel=1e-12)
+    # rightly: even twice the budget does not converge (it takes ~24,000 sweeps; projected here ~29,000)
+    longer = solve_socqp(W, b, 0.5, tol=1e-10, max_iter=2 * 2000, anderson=0)
+    assert not longer.converged
+
+
+@pytest.mark.parametrize("seed", [12, 13])
+def test_projection_never_gives_up_on_a_run_that_converges(seed):
+    """On converging hair problems, every prefix of the run projects no more than twice the sweeps the
+    run really took (the rule of give_up is optimistic)."""
+    from groomtool.solvers.gauss_seidel import projected_sweeps
+
+    P = hair(400, seed=seed)
+    res = solve_contact_problem(P, tol=1e-10, check_every=5)
+    assert res.converged
+    hist = res.info["history"]
+    for k in range(4, len(hist)):
+        assert projected_sweeps(hist[:k], 1e-10) <= 2 * res.iterations
+
+
 def test_over_relaxation_still_converges():
     P = hair(200, seed=11)
     ref = solve_contact_problem(P, tol=1e-9)

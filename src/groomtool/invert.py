@@ -13,6 +13,7 @@ H K^-2 H^T (gamma_abs = gamma * mean diag), so it is dimensionless.
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field
 
@@ -336,11 +337,7 @@ def invert_groom(groom: Groom, head=None, params: InversionParams | None = None,
         report["solve"]["guess"] = params.guess
         if not solve["converged"]:
             report["timings_s"] = dict(timer.stages)
-            raise SolverFailure(
-                f"contact solver {solve['solver']} did not converge: status {solve['status']}, "
-                f"residual {solve['residual']:.3e} after {solve['iterations']} iterations "
-                f"(target {params.solver_tolerance:.0e})",
-                solve["status"], solve["residual"], report)
+            raise SolverFailure(_failure_message(solve, params), solve["status"], solve["residual"], report)
         with timer.stage("rest_curvatures"):
             rest = rest_curvatures_with_contacts(helix, material, F, H, forces.ravel())
     else:
@@ -486,6 +483,9 @@ def _snap_groom_roots(groom: Groom, head, snap_roots):
 
 AUTO_CLARABEL_MAX_CONTACTS = 10_000
 AUTO_GS_MAX_REDUNDANT = 0.25
+#: Gauss-Seidel stops early once its rate projects more than this many times the sweep budget
+#: (solvers.gauss_seidel.projected_sweeps): dense grooms then fail in minutes, not after the whole budget
+GS_GIVE_UP = 2.0
 
 
 def redundant_strand_fraction(helix: sh.SuperHelix, contacts) -> float:
@@ -522,6 +522,22 @@ def choose_solver(solver: str, n_contacts: int, redundant_fraction: float = 1.0)
     return "clarabel"
 
 
+def _failure_message(solve: dict, params: InversionParams) -> str:
+    """What went wrong in the contact solve, how far it got, and what the user can do."""
+    msg = (f"contact solver {solve['solver']} did not converge: status {solve['status']}, residual "
+           f"{solve['residual']:.3e} after {solve['iterations']} iterations (target {params.solver_tolerance:.0e})")
+    if solve.get("projected_sweeps") is not None:
+        msg += (f"; at its rate it would need about {solve['projected_sweeps']:,.0f} sweeps (budget "
+                f"{params.max_iterations:,})")
+    if solve.get("redundant_strand_fraction", 0.0) > AUTO_GS_MAX_REDUNDANT:
+        msg += (f". The contacts are dense ({100 * solve['redundant_strand_fraction']:.0f} % of the strands that "
+                "carry contacts have more contact rows than dofs; docs/solvers.md section 9)")
+    accept = 10.0 ** math.ceil(math.log10(max(solve["residual"], 1e-300)))
+    msg += (f". Any forces in their cones still make the groom an exact equilibrium, only less close to the "
+            f"guess: --solver-tolerance {accept:.0e} accepts these forces")
+    return msg
+
+
 def _solve(problem: InverseProblem, helix: sh.SuperHelix, params: InversionParams, quiet: bool = True,
            redundant_fraction: float = 1.0) -> dict:
     """Solve the scaled SOCQP with the chosen solver; forces returned in newtons (m, 3).  The progress
@@ -542,9 +558,11 @@ def _solve(problem: InverseProblem, helix: sh.SuperHelix, params: InversionParam
                 bar.set_postfix_str(f"residual {residual:.1e} (target {params.solver_tolerance:.0e})")
 
             # the sweep budget is Gauss-Seidel's; clarabel keeps its own iteration limit
-            budget = None if method == "clarabel" else params.max_iterations
+            if method == "clarabel":
+                return solve_contact_problem(cp, law="soc", method=method, tol=params.solver_tolerance,
+                                             callback=show)
             return solve_contact_problem(cp, law="soc", method=method, tol=params.solver_tolerance,
-                                         max_iter=budget, callback=show)
+                                         max_iter=params.max_iterations, callback=show, give_up=GS_GIVE_UP)
 
     res = run(method)
     fallback = None
@@ -556,6 +574,8 @@ def _solve(problem: InverseProblem, helix: sh.SuperHelix, params: InversionParam
     status = "solved" if res.converged else str(res.status)
     out = {"forces": forces, "solver": res.method, "status": status, "converged": bool(res.converged),
            "iterations": int(res.iterations), "residual": float(res.residual), "time_s": float(res.time_s)}
+    if res.info.get("projected_sweeps") is not None:
+        out["projected_sweeps"] = float(res.info["projected_sweeps"])
     if "polish_sweeps" in res.info:  # clarabel's point finished by Gauss-Seidel (solvers.api)
         out["polish_sweeps"] = int(res.info["polish_sweeps"])
         out["clarabel_residual"] = float(res.info["clarabel_residual"])

@@ -33,7 +33,8 @@ class SolveResult:
     """Outcome of a contact solve.
 
     r:              (3m,) reactions, [N, T1, T2] per contact.
-    status:         "solved", "max_iter", "time_limit", "diverged" (iterative methods) or clarabel's status.
+    status:         "solved", "max_iter", "time_limit", "stalled" (gs with give_up: info["projected_sweeps"]),
+                    "diverged" (iterative methods) or clarabel's status.
     converged:      residual <= tol.  clarabel: it reported Solved and its point, polished by Gauss-Seidel
                     sweeps where its residual was above tol (info: polish_sweeps, clarabel_residual), meets tol.
     residual:       max_i ||r_i - P_K(r_i - rho_i u_eff_i)|| / max_i rho_i ||b_i||   (residual.py).
@@ -57,11 +58,13 @@ class SolveResult:
     info: dict = field(default_factory=dict)
 
 
-def _iterative_status(converged: bool, residual: float, iterations: int, max_iter: int) -> str:
+def _iterative_status(converged: bool, residual: float, iterations: int, max_iter: int, info: dict) -> str:
     if converged:
         return "solved"
     if not np.isfinite(residual):
         return "diverged"
+    if info.get("projected_sweeps") is not None:
+        return "stalled"
     return "max_iter" if iterations >= max_iter else "time_limit"
 
 
@@ -90,8 +93,11 @@ def _run_gs_family(op, law, method, tol, max_iter, r0, options, info):
     stall = COULOMB_STALL_WINDOW if method == "auto" else None
     out = run_gauss_seidel(op, law, tol=tol, max_sweeps=max_iter, r0=r0, stall_window=stall, **options)
     info.update(local_failures=out.local_failures, history=out.history, solve_s=out.solve_s)
+    if out.projected_sweeps is not None:  # stopped by give_up
+        info["projected_sweeps"] = out.projected_sweeps
     if method == "auto" and not out.converged and out.sweeps < max_iter and np.isfinite(out.residual):
         fp_opts = {k: v for k, v in options.items() if k in ("anderson", "time_limit", "check_every", "scale")}
+        info.pop("projected_sweeps", None)
         fp = run_coulomb_fixed_point(op, tol=tol, max_sweeps=max_iter - out.sweeps, r0=out.r, **fp_opts)
         info.update(switched_to="fixed_point", gs_sweeps=out.sweeps, outer_iterations=fp.outer,
                     local_failures=out.local_failures + fp.local_failures,
@@ -154,7 +160,7 @@ def _solve_assembled(W, b, mu, law, method, tol, max_iter, r0, options) -> Solve
         setup_s = time.perf_counter() - t0
         r, iters, conv, res_solver = _run_gs_family(op, law, method, tol, max_iter, r0, options, info)
         info.update(form="assembled", setup_s=setup_s)
-        status = _iterative_status(conv, res_solver, iters, max_iter)
+        status = _iterative_status(conv, res_solver, iters, max_iter, info)
     elif method == "apgd":
         U = UpperBlockDelassus.from_sparse(W)
         rho = _res.rho_from_diagonal(U.diagonal())
@@ -162,7 +168,7 @@ def _solve_assembled(W, b, mu, law, method, tol, max_iter, r0, options) -> Solve
         out = run_apgd(UpperMatvec(U), b, mu, rho, tol=tol, max_iter=max_iter, r0=r0, **options)
         r, iters, conv = out.r, out.iterations, out.converged
         info.update(form="assembled", setup_s=setup_s, solve_s=out.solve_s, restarts=out.restarts, history=out.history)
-        status = _iterative_status(conv, out.residual, iters, max_iter)
+        status = _iterative_status(conv, out.residual, iters, max_iter, info)
     else:
         polish = options.pop("polish", True)
         callback = options.pop("callback", None)
@@ -205,7 +211,9 @@ def solve_socqp(W, b, mu, method: str = "gs", tol: float = 1e-8, max_iter: int |
     (= "gs").  tol: on the residual of residual.py (every method).
     options: gs: anderson=8 (memory; 0 = plain Gauss-Seidel), anderson_start=10, omega=1.0, order="natural",
     check_every=10, time_limit, scale (replaces max_i rho_i ||b_i|| in the residual, e.g. to floor it),
-    callback(sweeps, residual) at every residual check (also during clarabel's polish);
+    give_up (stop, status "stalled", once the run's rate projects more than give_up * max_iter sweeps:
+    gauss_seidel.projected_sweeps), callback(sweeps, residual) at every residual check (also during
+    clarabel's polish);
     apgd: check_every, time_limit; clarabel: threads, linear_solver, time_limit, polish=True (False: return
     clarabel's own point, converged when clarabel reports Solved, whatever its residual)."""
     return _solve_assembled(W, b, mu, "soc", method, tol, max_iter, r0, dict(options))
@@ -323,7 +331,7 @@ def solve_contact_problem(
             out = run_apgd(mv, b, problem.mu, rho, tol=tol, max_iter=max_iter, r0=r0, **options)
             info.update(restarts=out.restarts, solve_s=out.solve_s, history=out.history)
             r, iters, conv, res_solver = out.r, out.iterations, out.converged, out.residual
-        status = _iterative_status(conv, res_solver, iters, max_iter)
+        status = _iterative_status(conv, res_solver, iters, max_iter, info)
         info.update(form=form, setup_s=setup_s)
     u = problem.velocity(r)
     residual = _factored_residual(problem, r, law, options.get("scale"), u)

@@ -387,6 +387,29 @@ class GSOutcome:
     history: list = field(default_factory=list)  # [(sweep, residual, seconds)]
     solve_s: float = 0.0
     stalled: bool = False
+    projected_sweeps: float | None = None  # set when stopped by ``give_up``
+
+
+GIVE_UP_MIN_SWEEPS = 400  #: sweeps before ``give_up`` may judge a run
+
+
+def projected_sweeps(history, tol: float) -> float:
+    """Sweeps a run would need in all to reach ``tol`` at the geometric rate of the second half of its
+    ``history`` [(sweep, residual, ...), ...]:  s + log(res_s / tol) / rate,  rate = log(res_h / res_s) /
+    (s - h) with h the first check at or after s / 2 (best residuals so far, so Anderson's bumps do not
+    count).  Exact for a linear rate (a Gauss-Seidel chain: 29,000 projected at 500 sweeps, 24,000 needed);
+    optimistic where convergence slows down as it goes (dense grooms); a slow start can overestimate, hence
+    give_up's margin.  inf when the residual did not decrease."""
+    sweeps = np.array([h[0] for h in history], dtype=np.float64)
+    best = np.minimum.accumulate(np.array([h[1] for h in history], dtype=np.float64))
+    s, res_s = sweeps[-1], best[-1]
+    if res_s <= tol:
+        return float(s)
+    k = int(np.searchsorted(sweeps, 0.5 * s))
+    if k >= len(sweeps) - 1 or not best[k] > res_s > 0:
+        return math.inf
+    rate = math.log(best[k] / res_s) / (s - sweeps[k])
+    return float(s + math.log(res_s / tol) / rate)
 
 
 def run_gauss_seidel(
@@ -404,6 +427,7 @@ def run_gauss_seidel(
     time_limit: float | None = None,
     stall_window: int | None = None,
     local_tol_fraction: float = 1e-5,
+    give_up: float | None = None,
     callback=None,
 ) -> GSOutcome:
     """Sweep until residual <= tol (residual.py; checked every ``check_every`` sweeps) or max_sweeps.
@@ -413,6 +437,9 @@ def run_gauss_seidel(
     fixed-point residual ||G(x) - x|| grows tenfold over the best seen restarts the history.
     stall_window: stop (outcome.stalled) when the best residual of the last ``stall_window`` sweeps is not
     half the best before them (Gauss-Seidel on the Coulomb law can cycle).
+    give_up: stop (outcome.stalled, outcome.projected_sweeps) once, after GIVE_UP_MIN_SWEEPS sweeps and a
+    quarter of the budget, projected_sweeps says the run needs more than ``give_up * max_sweeps`` sweeps
+    (dense redundant contacts, docs/solvers.md section 9: the budget would be spent for nothing).
     local_tol_fraction: each local solve stops once its natural map is below this fraction of the
     global target (tol * scale, in the residual's units) or at local.LOCAL_TOL relative, whichever
     comes first (contacts with tiny forces then take one Newton step instead of three or four).  Keep it
@@ -445,6 +472,7 @@ def run_gauss_seidel(
     sweeps = 0
     fails = 0
     stalled = False
+    projected = None
     if res <= tol or max_sweeps <= 0:
         return GSOutcome(op.to_external(x), float(res), 0, bool(res <= tol), 0, history, time.perf_counter() - t0)
     mixer = AndersonMixer(3 * m, anderson) if anderson > 0 else None
@@ -480,6 +508,11 @@ def run_gauss_seidel(
                 if recent > 0.5 * before:
                     stalled = True
                     break
+            if give_up is not None and sweeps >= max(GIVE_UP_MIN_SWEEPS, max_sweeps // 4):
+                projected = projected_sweeps(history, tol)
+                if projected > give_up * max_sweeps:
+                    stalled = True
+                    break
         if mixer is None or sweeps < anderson_start:
             x = g
             xf = gf
@@ -495,4 +528,5 @@ def run_gauss_seidel(
         res = measure(g)
         history.append((sweeps, res, time.perf_counter() - t0))
     solve_s = time.perf_counter() - t0
-    return GSOutcome(op.to_external(g), float(res), sweeps, bool(res <= tol), int(fails), history, solve_s, stalled)
+    return GSOutcome(op.to_external(g), float(res), sweeps, bool(res <= tol), int(fails), history, solve_s, stalled,
+                     projected if stalled else None)
