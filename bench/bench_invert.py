@@ -111,8 +111,8 @@ def markdown(meta: dict, runs: list[dict]) -> str:
         f"{', '.join(f'{x:.1f}' for x in meta['load_at_end'])}). One thread (numba, BLAS), each run in its own "
         f"process, numba caches warm. Solver: `auto` unless the row says otherwise (Gauss-Seidel for sparse contacts "
         f"or beyond 10,000, clarabel + Gauss-Seidel polish for dense ones up to 10,000: docs/solvers.md section 9), "
-        f"tolerance 1e-8, at most the row's sweep budget (a row that is not converged stopped there; its later "
-        f"stages did not run).",
+        f"tolerance 1e-8, at most the row's sweep budget (a row that is not converged stopped there, or earlier "
+        f"when its rate projected more than twice the budget: `stalled`; its later stages did not run).",
         "",
         "Stage columns are wall seconds of `invert_groom` (report.json `timings_s`); `cpu` is the process CPU "
         "time of invert_groom (loading excluded).",
@@ -133,6 +133,8 @@ def markdown(meta: dict, runs: list[dict]) -> str:
         if sv.get("polish_sweeps"):
             its = f"{its} + {sv['polish_sweeps']} polish"
         status = "solved" if r["converged"] else f"NOT converged ({sv.get('status')})"
+        if sv.get("projected_sweeps"):
+            status += f", projected {sv['projected_sweeps']:,.0f} sweeps"
         lines.append(
             f"| {s['groom']} | {s['mode']} | {r['strands']:,} | {_f(r.get('elements'), '{:,}')} | "
             + (f"{c.get('total', 0):,} ({c.get('strand_head', 0):,} / {c.get('strand_strand', 0):,})" if c else "-")
