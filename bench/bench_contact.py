@@ -57,8 +57,28 @@ def load_mesh(path: Path, scale: float = 1.0):
     return mesh
 
 
+def fitted_samples(data: Path):
+    """harolongo as `groom invert --contacts all` sees it: fitted Super-Helices sampled at 8 points per
+    element (points, offsets, arc)."""
+    from groomtool.fit import fit_groom
+    from groomtool.invert import InversionParams
+    from groomtool.io import load_groom
+    from groomtool.rods import superhelix as sh
+
+    params = InversionParams(contacts="all")
+    helix = fit_groom(load_groom(data / HAROLONGO[0], units="cm"), tolerance=params.tolerance).helix
+    pts, offsets, _, arc = sh.sample(helix, params.samples_per_element)
+    return pts, offsets, arc
+
+
 def groups_for(spec: dict, data: Path):
-    """[(strands, mesh)] for a row spec; USC gives one group per style."""
+    """[((points, offsets, arc), mesh)] for a row spec; USC gives one group per style."""
+    if spec["dataset"] == "harolongo_fitted":
+        return [(fitted_samples(data), load_mesh(data / HAROLONGO[1], HAROLONGO[2]))]
+    return [(ragged(strands), mesh) for strands, mesh in _polyline_groups(spec, data)]
+
+
+def _polyline_groups(spec: dict, data: Path):
     if spec["dataset"] == "harolongo":
         strands = read_data(data / HAROLONGO[0], HAROLONGO[2])
         if spec.get("subset"):
@@ -83,10 +103,10 @@ def rss_mb() -> float:
 def run_row(spec: dict, data: Path) -> dict:
     from groomtool.contact import HeadSurface, detect_contacts
 
-    groups = groups_for(spec, data)
-    warm = ragged(groups[0][0][:3])
-    detect_contacts(*warm, spec["radius"], head=HeadSurface(groups[0][1]))  # loads the numba cache
-    prepared = [(ragged(strands), mesh) for strands, mesh in groups]
+    prepared = groups_for(spec, data)
+    (pts, off, arc), mesh = prepared[0]
+    k = off[min(3, len(off) - 1)]
+    detect_contacts(pts[:k], off[:4], arc[:k], spec["radius"], head=HeadSurface(mesh))  # loads the numba cache
     base = rss_mb()
     totals: dict = {}
     wall0, cpu0 = time.perf_counter(), time.process_time()
@@ -149,8 +169,8 @@ def distance_study(data: Path) -> dict:
 
     out = {}
     pct = [1, 5, 10, 25, 50, 75, 90]
-    for name, groups in (("harolongo", groups_for({"dataset": "harolongo"}, data)),
-                         ("usc", groups_for({"dataset": "usc"}, data))):
+    for name, groups in (("harolongo", _polyline_groups({"dataset": "harolongo"}, data)),
+                         ("usc", _polyline_groups({"dataset": "usc"}, data))):
         probe = 1e-2 if name == "usc" else 2e-4  # pairs found up to 2 * probe
         nearest, gaps, strand_min = [], [], []
         head = HeadSurface(groups[0][1])
@@ -190,14 +210,14 @@ STAGES = [("time_head_prepare", "head prep"), ("time_strand_pairs", "s/s pairs")
 
 
 def table(rows: list[dict]) -> str:
-    head = ["data", "strands", "segments", "r_c (um)", "box pairs", "candidates", "close pairs", "s/s contacts",
+    head = ["data", "strands", "segments", "r_c (um)", "group pairs", "candidates", "close pairs", "s/s contacts",
             "s/h contacts (inside)"] + [s for _, s in STAGES] + ["total wall s", "total cpu s", "peak MB (+run)"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r in rows:
         name = r["dataset"] + (f" ({r['subset']} random strands)" if r.get("subset") else "")
         if r["dataset"] == "usc":
             name = f"usc cstrands ({r['groups']} styles)"
-        cells = [name, f"{r['strands']:,}", f"{r['segments']:,}", f"{r['radius'] * 1e6:g}", f"{r['box_pairs']:,}",
+        cells = [name, f"{r['strands']:,}", f"{r['segments']:,}", f"{r['radius'] * 1e6:g}", f"{r['group_pairs']:,}",
                  f"{r['candidates']:,}", f"{r['close_pairs']:,}", f"{r['strand_contacts']:,}",
                  f"{r['head_contacts']:,} ({r['head_contacts_inside']:,})"]
         cells += [f"{r[k]:.2f}" for k, _ in STAGES]
@@ -225,6 +245,7 @@ def main() -> None:
     radii = [DEFAULT_CONTACT_RADIUS] if args.quick else [25e-6, 40e-6, DEFAULT_CONTACT_RADIUS, 100e-6, 200e-6]
     specs = [{"dataset": "harolongo", "radius": r} for r in radii]
     specs += [{"dataset": "harolongo", "radius": DEFAULT_CONTACT_RADIUS, "subset": n} for n in (1000, 2000, 4000)]
+    specs += [{"dataset": "harolongo_fitted", "radius": DEFAULT_CONTACT_RADIUS}]
     specs += [{"dataset": "usc", "radius": r} for r in ([DEFAULT_CONTACT_RADIUS] if args.quick else [DEFAULT_CONTACT_RADIUS, 1e-3])]
     rows = []
     for spec in specs:
@@ -248,11 +269,14 @@ def main() -> None:
           "numba functions already compiled and cached). Stage columns are wall seconds. "
           f"Machine: {env['cpus']} CPUs, load average at the end {tuple(round(x, 2) for x in env['load_average_at_end'])} "
           "(shared machine: wall > cpu means other work competed for the cores).", "",
-          "harolongo: 7,905 strands x 21 vertices (cm -> m) with its head mesh (21,510 faces); "
+          "harolongo: 7,905 strands x 21 vertices (cm -> m) with its head mesh (21,510 faces); harolongo_fitted: "
+          "the same strands as `groom invert --contacts all` samples them (fitted Super-Helices, 8 points per "
+          "element, 2.7 M segments; roots not snapped); "
           "usc: 343 five-strand styles, each run separately against the USC head (13,832 faces), totals.", "",
           table(rows), "",
-          "box pairs: segment pairs whose boxes (inflated by r_c) overlap; candidates: of those, pairs whose "
-          "infinite lines are closer than 2 r_c (exact test); close pairs: segment pairs closer than 2 r_c; "
+          "group pairs: pairs of segment groups (runs of consecutive segments of a strand) whose boxes (inflated "
+          "by r_c) overlap; candidates: segment pairs given the exact test (boxes overlap, lines closer than 2 r_c); "
+          "close pairs: segment pairs closer than 2 r_c; "
           "contacts: one per local minimum after merging. s/h inside: head contacts with the axis inside the mesh.", "",
           "## Head distance query: own BVH vs trimesh", "",
           f"{comparison['points']:,} harolongo vertices inside the head's box: own {comparison['own_us_per_point']:.2f} us/point "

@@ -8,6 +8,7 @@ from scipy.optimize import minimize
 
 from groomtool.contact import (HEAD, Contacts, close_segment_pairs, contact_frames, detect_contacts,
                                detect_strand_contacts, segment_closest_points)
+from groomtool.contact import detect
 from groomtool.contact.detect import strand_segments
 from groomtool.groom import Groom
 
@@ -317,6 +318,65 @@ def test_spatial_hash_equals_brute_force(seed, n_strands, radius, cell):
     for key, d in got.items():
         assert d == pytest.approx(d_all[(i_all == key[0]) & (j_all == key[1])][0], abs=1e-9)
     assert pairs.n_candidates >= len(got)
+
+
+def reference_pairs(points, offsets, arc, radius):
+    """The pairs of the segment-level hash that the grouped broad phase replaced, sorted by (i, j)."""
+    ref = detect._reference_close_segment_pairs(points, offsets, arc, radius)
+    order = np.lexsort((ref.j, ref.i))
+    return detect.SegmentPairs(ref.i[order], ref.j[order], ref.s[order], ref.t[order], ref.distance[order],
+                               ref.n_candidates)
+
+
+def random_groom(rng, n_strands, radius):
+    """Random walks, near-parallel copies, U-turns and kinks on the scale of the contact radius."""
+    step = radius * rng.uniform(0.5, 20.0)  # segments from shorter than r_c to long ones
+    strands = []
+    for _ in range(n_strands):
+        kind = rng.choice(["walk", "parallel", "uturn", "kink"])
+        n = int(rng.integers(2, 40))
+        start = rng.uniform(-10 * radius, 10 * radius, 3)
+        if kind == "walk" or not strands:
+            strands.append(start + np.cumsum(rng.normal(scale=step, size=(n, 3)), axis=0))
+        elif kind == "parallel":  # a copy of another strand, shifted about 2 r_c and jittered
+            base = strands[int(rng.integers(len(strands)))]
+            shift = rng.normal(size=3)
+            shift *= rng.uniform(1.0, 2.5) * radius / np.linalg.norm(shift)
+            strands.append(base + shift + rng.normal(scale=1e-3 * radius, size=base.shape))
+        elif kind == "uturn":  # out and back along a half circle of diameter about 2 r_c
+            leg = np.outer(np.arange(n), rng.normal(size=3) * step)
+            turn = rng.uniform(0.5, 3.0) * radius * np.array([0.0, 1.0, 0.0])
+            ang = np.linspace(0, np.pi, 9)[1:-1]
+            bend = leg[-1] + 0.5 * turn + np.outer(np.cos(ang), -0.5 * turn) + np.outer(np.sin(ang), step * np.ones(3))
+            strands.append(start + np.concatenate([leg, bend, leg[::-1] + turn]))
+        else:  # sharp kinks: every other vertex pushed sideways
+            pts = start + np.outer(np.arange(n), rng.normal(size=3) * step)
+            pts[1::2] += rng.normal(scale=step, size=(len(pts[1::2]), 3))
+            strands.append(pts)
+    if rng.random() < 0.2:  # zero-length segments
+        strands[0] = np.repeat(strands[0], 2, axis=0)
+    return strands
+
+
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(seed=st.integers(0, 10**6), n_strands=st.integers(1, 25), radius=st.floats(1e-5, 1e-3),
+       cell=st.sampled_from([None, None, 0.5, 2.0]))
+def test_grouped_broad_phase_equals_segment_hash(seed, n_strands, radius, cell):
+    """Same close pairs (bit for bit, sorted by segment pair) and same contacts as the segment-level
+    hash it replaced, on random walks, near-parallel strands, U-turns and kinks."""
+    strands = random_groom(np.random.default_rng(seed), n_strands, radius)
+    pts, off, arc = ragged(strands)
+    cell_size = None if cell is None else cell * 20 * radius
+    pairs = close_segment_pairs(pts, off, arc, radius, cell_size=cell_size)
+    ref = reference_pairs(pts, off, arc, radius)
+    for name in ("i", "j", "s", "t", "distance"):
+        np.testing.assert_array_equal(getattr(pairs, name), getattr(ref, name))
+    got = detect_strand_contacts(pts, off, arc, radius)
+    with pytest.MonkeyPatch.context() as m:
+        m.setattr(detect, "close_segment_pairs", lambda *a, **k: reference_pairs(*a[:4]))
+        expected = detect_strand_contacts(pts, off, arc, radius)
+    for name in Contacts.ARRAYS:
+        np.testing.assert_array_equal(getattr(got, name), getattr(expected, name))
 
 
 # --------------------------------------------------------------------------------------- frames

@@ -3,11 +3,19 @@
 Each strand segment is a capsule of radius ``r_c`` around its axis; two capsules touch when the
 axis-to-axis distance is below ``2 r_c``.  Pipeline (all numba, one core):
 
-1. broad phase: a sorted spatial hash.  Every segment's AABB, inflated by ``r_c``, is inserted in
-   every cell it overlaps; each cell's entries are swept along x and tested pairwise (AABB overlap);
+1. broad phase: runs of up to ``GROUP_SEGMENTS`` consecutive segments of one strand (at most
+   ``GROUP_DIAMETERS`` contact diameters long, so long segments stay alone) form groups, each with
+   the box of its segments inflated by ``r_c`` and a capsule (the chord from its first to its last
+   vertex, and how far its vertices stray from it).  A sorted spatial hash finds the group pairs
+   whose boxes overlap: every group box is inserted in every cell it overlaps (counting sort by
+   cell, boxes by lower x inside a cell); each cell's entries are swept along x and tested pairwise;
    a pair is owned by the single cell holding the lower corner of the two boxes' intersection, so
-   no pair is reported twice and no dedup pass is needed.  Pairs whose infinite lines are at least
-   ``2 r_c`` apart are rejected before the exact test.
+   no pair is reported twice.  Group pairs whose capsules are at least ``2 r_c`` apart (plus a
+   rounding margin) are skipped; in the others, segments whose box overlaps the other group's box
+   are paired up, and pairs whose boxes overlap are tested, as are the pairs inside each group.
+   Pairs whose infinite lines are at least ``2 r_c`` apart, and consecutive segments of a strand
+   bent too little to touch themselves (a bound from the same-strand rule below), are rejected
+   before the exact test.  The close pairs come out sorted by segment pair.
 2. narrow phase: exact closest points between the two segments (clamped closest points; parallel,
    collinear and zero-length segments handled) -> contact when distance < ``2 r_c``.
 3. same-strand rule: two points of one strand are neighbours, not a contact, when they are less
@@ -21,7 +29,10 @@ axis-to-axis distance is below ``2 r_c``.  Pipeline (all numba, one core):
    of the distance between the two polylines unless it sits on a shared vertex where a neighbouring
    segment pair is closer (or equally close with a lower index).  Local minima of one strand pair
    closer than ``merge_arc`` (default ``4 r_c``) along both strands are then merged, keeping the
-   closest.
+   closest (on a tie, the lower segment pair).
+
+``_reference_close_segment_pairs`` keeps the segment-level spatial hash that step 1 replaced (every
+segment box in every cell it overlaps); the tests check that both find the same pairs.
 """
 
 from __future__ import annotations
@@ -213,17 +224,102 @@ def segment_closest_points(p0, p1, q0, q1):
 
 
 # ------------------------------------------------------------------------------- broad phase
+GROUP_SEGMENTS = 4  #: most segments in a broad-phase group
+GROUP_DIAMETERS = 32.0  #: most length of a group, in contact diameters (long segments stay alone)
+
+
 @nb.njit(cache=True)
-def _cell_entries(lo, hi, origin, h, nx, ny):
-    """(cell key, segment) for every cell overlapped by every box."""
-    n = lo.shape[0]
+def _segment_box(points, v, radius, box, r):
+    """Row r of box: the box of segment [points[v], points[v + 1]], inflated by radius."""
+    for k in range(3):
+        box[r, k] = min(points[v, k], points[v + 1, k]) - radius
+        box[r, 3 + k] = max(points[v, k], points[v + 1, k]) + radius
+
+
+@nb.njit(cache=True)
+def _boxes_overlap(a, r, b, q):
+    """Whether box row r of a and box row q of b (lower xyz, upper xyz) overlap (closed)."""
+    return not (b[q, 0] > a[r, 3] or a[r, 0] > b[q, 3] or b[q, 1] > a[r, 4] or a[r, 1] > b[q, 4]
+                or b[q, 2] > a[r, 5] or a[r, 2] > b[q, 5])
+
+
+@nb.njit(cache=True)
+def _segment_groups(points, seg_v0, seg_strand, radius, max_segments, max_length):
+    """Runs of consecutive segments of one strand, at most ``max_segments`` long and, past the first
+    segment, at most ``max_length`` in total length.
+
+    Returns first (n_groups + 1,): the first segment of each group, then n_seg; box (n_groups, 6):
+    the union of the group's segment boxes inflated by radius (lower xyz, upper xyz); capsule
+    (n_groups, 7): the chord from the group's first to its last vertex and the largest distance of
+    the group's vertices (hence of its polyline) from that chord.
+    """
+    n = seg_v0.shape[0]
+    first = np.empty(n + 1, np.int64)
+    n_groups = 0
+    length = 0.0
+    for i in range(n):
+        v = seg_v0[i]
+        seg_len = np.sqrt((points[v + 1, 0] - points[v, 0]) ** 2 + (points[v + 1, 1] - points[v, 1]) ** 2
+                          + (points[v + 1, 2] - points[v, 2]) ** 2)
+        if (n_groups == 0 or seg_strand[i] != seg_strand[i - 1] or i - first[n_groups - 1] >= max_segments
+                or length + seg_len > max_length):
+            first[n_groups] = i
+            n_groups += 1
+            length = 0.0
+        length += seg_len
+    first[n_groups] = n
+    first = first[: n_groups + 1].copy()
+    box = np.empty((n_groups, 6))
+    capsule = np.empty((n_groups, 7))
+    seg_box = np.empty((1, 6))
+    for g in range(n_groups):
+        box[g, :3] = np.inf
+        box[g, 3:] = -np.inf
+        for i in range(first[g], first[g + 1]):
+            _segment_box(points, seg_v0[i], radius, seg_box, 0)
+            for k in range(3):
+                box[g, k] = min(box[g, k], seg_box[0, k])
+                box[g, 3 + k] = max(box[g, 3 + k], seg_box[0, 3 + k])
+        v0 = seg_v0[first[g]]
+        v1 = seg_v0[first[g + 1] - 1] + 1
+        chord2 = 0.0
+        for k in range(3):
+            capsule[g, k] = points[v0, k]
+            capsule[g, 3 + k] = points[v1, k]
+            chord2 += (points[v1, k] - points[v0, k]) ** 2
+        dev = 0.0
+        for v in range(v0 + 1, v1):
+            t = 0.0
+            if chord2 > 0.0:
+                for k in range(3):
+                    t += (points[v, k] - points[v0, k]) * (points[v1, k] - points[v0, k])
+                t = min(max(t / chord2, 0.0), 1.0)
+            d2 = 0.0
+            for k in range(3):
+                d2 += (points[v, k] - points[v0, k] - t * (points[v1, k] - points[v0, k])) ** 2
+            dev = max(dev, np.sqrt(d2))
+        capsule[g, 6] = dev
+    return first, box, capsule
+
+
+def default_cell_size(box: np.ndarray) -> float:
+    """Hash cell edge: twice the mean edge of the group boxes (box (n, 6): lower xyz, upper xyz)."""
+    if len(box) == 0:
+        return 1.0
+    return 2.0 * float(np.mean(box[:, 3:] - box[:, :3]))
+
+
+@nb.njit(cache=True)
+def _cell_entries(box, order, origin, h, nx, ny):
+    """(cell key, box) for every cell overlapped by every box, the boxes taken in ``order``."""
+    n = box.shape[0]
     rng = np.empty((n, 6), np.int64)
     total = 0
     for i in range(n):
         cnt = 1
         for k in range(3):
-            a = np.int64(np.floor((lo[i, k] - origin[k]) / h))
-            b = np.int64(np.floor((hi[i, k] - origin[k]) / h))
+            a = np.int64(np.floor((box[i, k] - origin[k]) / h))
+            b = np.int64(np.floor((box[i, 3 + k] - origin[k]) / h))
             rng[i, k] = a
             rng[i, 3 + k] = b
             cnt *= b - a + 1
@@ -231,7 +327,8 @@ def _cell_entries(lo, hi, origin, h, nx, ny):
     keys = np.empty(total, np.int64)
     ids = np.empty(total, np.int64)
     m = 0
-    for i in range(n):
+    for o in range(n):
+        i = order[o]
         for iz in range(rng[i, 2], rng[i, 5] + 1):
             for iy in range(rng[i, 1], rng[i, 4] + 1):
                 for ix in range(rng[i, 0], rng[i, 3] + 1):
@@ -242,10 +339,39 @@ def _cell_entries(lo, hi, origin, h, nx, ny):
 
 
 @nb.njit(cache=True)
+def _counting_sort(keys, n_keys):
+    """Stable order of keys in [0, n_keys)."""
+    start = np.zeros(n_keys + 1, np.int64)
+    for key in keys:
+        start[key + 1] += 1
+    for c in range(n_keys):
+        start[c + 1] += start[c]
+    order = np.empty(keys.shape[0], np.int64)
+    for x in range(keys.shape[0]):
+        order[start[keys[x]]] = x
+        start[keys[x]] += 1
+    return order
+
+
+@nb.njit(cache=True)
 def _grow(arr, n):
-    out = np.empty(max(2 * arr.shape[0], n), arr.dtype)
+    out = np.empty((max(2 * arr.shape[0], n),) + arr.shape[1:], arr.dtype)
     out[: arr.shape[0]] = arr
     return out
+
+
+@nb.njit(cache=True)
+def _push(out_ij, out_std, n, i, j, s, t, d):
+    """Store pair n (i, j; s, t, d), growing the arrays when full."""
+    if n == out_ij.shape[0]:
+        out_ij = _grow(out_ij, n + 1)
+        out_std = _grow(out_std, n + 1)
+    out_ij[n, 0] = i
+    out_ij[n, 1] = j
+    out_std[n, 0] = s
+    out_std[n, 1] = t
+    out_std[n, 2] = d
+    return out_ij, out_std
 
 
 @nb.njit(cache=True)
@@ -303,8 +429,296 @@ def _self_params(points, arc, u, w, s, t, min_arc):
     return s_new, t_new, True
 
 
+_ADJACENT_MARGIN = 1e-6  # relative margin of the adjacent-segment bound over rounding
+
+
 @nb.njit(cache=True)
-def _close_pairs_kernel(keys, ids, lo, hi, origin, h, nx, ny, points, arc, seg_v0, seg_strand,
+def _pair_test(i, j, points, arc, seg_v0, seg_strand, two_rc, min_self_arc):
+    """Exact test of segments i < j whose inflated boxes overlap.
+
+    Returns (stage, s, t, d): stage 0 when rejected without the exact test, 1 when the exact test
+    finds them 2 r_c apart or more, 2 when they are closer, with their closest-point parameters
+    and distance.
+    """
+    u = seg_v0[i]
+    w = seg_v0[j]
+    dxi = points[u + 1, 0] - points[u, 0]
+    dyi = points[u + 1, 1] - points[u, 1]
+    dzi = points[u + 1, 2] - points[u, 2]
+    dxj = points[w + 1, 0] - points[w, 0]
+    dyj = points[w + 1, 1] - points[w, 1]
+    dzj = points[w + 1, 2] - points[w, 2]
+    len2_i = 0.0 + dxi ** 2 + dyi ** 2 + dzi ** 2
+    len2_j = 0.0 + dxj ** 2 + dyj ** 2 + dzj ** 2
+    two_rc2 = two_rc * two_rc
+    same = seg_strand[i] == seg_strand[j]
+    if same and w == u + 1:
+        # consecutive segments meeting at a vertex at angle cos = c: points P, Q at arc distances
+        # (1 - s) l_i before it and t l_j after it with (1 - s) l_i + t l_j >= min_self_arc are at
+        # least rho min_self_arc apart along the polyline, rho = min(|segment| / arc) <= 1, so
+        # |P - Q|^2 >= (rho min_self_arc)^2 (1 + c) / 2: no contact when that exceeds (2 r_c)^2
+        la = arc[u + 1] - arc[u]
+        lb = arc[w + 1] - arc[w]
+        if la > 0.0 and lb > 0.0 and len2_i > 0.0 and len2_j > 0.0:
+            c = (dxi * dxj + dyi * dyj + dzi * dzj) / np.sqrt(len2_i * len2_j)
+            rho2 = min(len2_i / (la * la), len2_j / (lb * lb))
+            if rho2 * min_self_arc * min_self_arc * 0.5 * (1.0 + c) >= two_rc2 * (1.0 + _ADJACENT_MARGIN):
+                return 0, 0.0, 0.0, 0.0
+    # the infinite lines are no farther apart than the segments: reject when they are at least
+    # 2 r_c apart (only where the lines are not nearly parallel)
+    cx = dyi * dzj - dzi * dyj
+    cy = dzi * dxj - dxi * dzj
+    cz = dxi * dyj - dyi * dxj
+    cc = cx * cx + cy * cy + cz * cz
+    if cc > 1e-8 * len2_i * len2_j:
+        r = ((0.5 * (points[u, 0] + points[u + 1, 0]) - 0.5 * (points[w, 0] + points[w + 1, 0])) * cx
+             + (0.5 * (points[u, 1] + points[u + 1, 1]) - 0.5 * (points[w, 1] + points[w + 1, 1])) * cy
+             + (0.5 * (points[u, 2] + points[u + 1, 2]) - 0.5 * (points[w, 2] + points[w + 1, 2])) * cz)
+        if r * r >= two_rc2 * cc:
+            return 0, 0.0, 0.0, 0.0
+    s, t = _segment_params(points[u, 0], points[u, 1], points[u, 2],
+                           points[u + 1, 0], points[u + 1, 1], points[u + 1, 2],
+                           points[w, 0], points[w, 1], points[w, 2],
+                           points[w + 1, 0], points[w + 1, 1], points[w + 1, 2])
+    if same:
+        s, t, feasible = _self_params(points, arc, u, w, s, t, min_self_arc)
+        if not feasible:
+            return 1, s, t, 0.0
+    d2 = 0.0
+    for k in range(3):
+        ca = points[u, k] + s * (points[u + 1, k] - points[u, k])
+        cb = points[w, k] + t * (points[w + 1, k] - points[w, k])
+        d2 += (ca - cb) * (ca - cb)
+    d = np.sqrt(d2)
+    return (2 if d < two_rc else 1), s, t, d
+
+
+@nb.njit(cache=True)
+def _capsules_apart(capsule, a, b, limit):
+    """Whether the chords of capsule rows a and b are at least limit + both deviations apart (tested
+    on the chords' lines first, then on the chords)."""
+    reach = limit + capsule[a, 6] + capsule[b, 6]
+    dxa = capsule[a, 3] - capsule[a, 0]
+    dya = capsule[a, 4] - capsule[a, 1]
+    dza = capsule[a, 5] - capsule[a, 2]
+    dxb = capsule[b, 3] - capsule[b, 0]
+    dyb = capsule[b, 4] - capsule[b, 1]
+    dzb = capsule[b, 5] - capsule[b, 2]
+    cx = dya * dzb - dza * dyb
+    cy = dza * dxb - dxa * dzb
+    cz = dxa * dyb - dya * dxb
+    cc = cx * cx + cy * cy + cz * cz
+    if cc > 1e-8 * (dxa * dxa + dya * dya + dza * dza) * (dxb * dxb + dyb * dyb + dzb * dzb):  # not nearly parallel
+        r = ((capsule[a, 0] - capsule[b, 0]) * cx + (capsule[a, 1] - capsule[b, 1]) * cy
+             + (capsule[a, 2] - capsule[b, 2]) * cz)
+        if r * r >= reach * reach * cc:
+            return True
+    s, t = _segment_params(capsule[a, 0], capsule[a, 1], capsule[a, 2], capsule[a, 3], capsule[a, 4], capsule[a, 5],
+                           capsule[b, 0], capsule[b, 1], capsule[b, 2], capsule[b, 3], capsule[b, 4], capsule[b, 5])
+    d2 = 0.0
+    for k in range(3):
+        d2 += (capsule[a, k] + s * (capsule[a, 3 + k] - capsule[a, k])
+               - capsule[b, k] - t * (capsule[b, 3 + k] - capsule[b, k])) ** 2
+    return d2 >= reach * reach
+
+
+@nb.njit(cache=True)
+def _close_pairs_kernel(keys, ids, first, box, capsule, origin, h, nx, ny, points, arc, seg_v0, seg_strand,
+                        radius, min_self_arc, tol):
+    """Exact close segment pairs, from the group cell entries sorted by (cell key, box lower x).
+
+    Segment pairs inside each group are tested directly.  Pairs of groups come from a sweep along
+    x inside each cell (boxes and capsules gathered in entry order); a group pair belongs to the
+    single cell holding the lower corner of the two boxes' intersection.  Group pairs whose
+    capsules are at least 2 r_c + tol apart are skipped; two single segments go straight to
+    :func:`_pair_test` (their boxes are the group boxes); otherwise each group's segments whose
+    boxes overlap the other group's box are paired up and the pairs whose boxes overlap get it.
+
+    Returns (n_group_pairs, n_candidates, ij (m, 2), std (m, 3): s, t, distance), sorted by (i, j).
+    """
+    two_rc = 2.0 * radius
+    n_groups = first.shape[0] - 1
+    size = 1
+    for g in range(n_groups):
+        size = max(size, first[g + 1] - first[g])
+    seg_a = np.empty(size, np.int64)
+    seg_b = np.empty(size, np.int64)
+    box_a = np.empty((size, 6))
+    box_b = np.empty((size, 6))
+    out_ij = np.empty((1024, 2), np.int64)
+    out_std = np.empty((1024, 3))
+    n_out = 0
+    n_cand = 0
+    for g in range(n_groups):
+        m = first[g + 1] - first[g]
+        for a in range(m):
+            _segment_box(points, seg_v0[first[g] + a], radius, box_a, a)
+        for a in range(m):
+            for b in range(a + 1, m):
+                if _boxes_overlap(box_a, a, box_a, b):
+                    stage, s, t, d = _pair_test(first[g] + a, first[g] + b, points, arc, seg_v0, seg_strand,
+                                                two_rc, min_self_arc)
+                    n_cand += stage > 0
+                    if stage == 2:
+                        out_ij, out_std = _push(out_ij, out_std, n_out, first[g] + a, first[g] + b, s, t, d)
+                        n_out += 1
+
+    n = keys.shape[0]
+    eb = np.empty((n, 6))
+    ec = np.empty((n, 7))
+    for x in range(n):
+        eb[x] = box[ids[x]]
+        ec[x] = capsule[ids[x]]
+    n_group_pairs = 0
+    start = 0
+    while start < n:
+        key = keys[start]
+        end = start + 1
+        while end < n and keys[end] == key:
+            end += 1
+        cz = key // (nx * ny)
+        rem = key - cz * nx * ny
+        cy = rem // nx
+        cx = rem - cy * nx
+        for x in range(start, end):
+            ax1, ay0, ay1, az0, az1 = eb[x, 3], eb[x, 1], eb[x, 4], eb[x, 2], eb[x, 5]
+            for y in range(x + 1, end):
+                if eb[y, 0] > ax1:
+                    break  # sorted by lower x: no later box overlaps along x
+                if eb[y, 1] > ay1 or ay0 > eb[y, 4] or eb[y, 2] > az1 or az0 > eb[y, 5]:
+                    continue
+                # the pair belongs to the cell holding the lower corner of the boxes' intersection
+                # (eb[y, 0] >= eb[x, 0] after the sort)
+                if np.int64(np.floor((eb[y, 0] - origin[0]) / h)) != cx:
+                    continue
+                if np.int64(np.floor((max(ay0, eb[y, 1]) - origin[1]) / h)) != cy:
+                    continue
+                if np.int64(np.floor((max(az0, eb[y, 2]) - origin[2]) / h)) != cz:
+                    continue
+                n_group_pairs += 1
+                A = ids[x]
+                B = ids[y]
+                if _capsules_apart(ec, x, y, two_rc + tol):
+                    continue
+                if first[A + 1] - first[A] + first[B + 1] - first[B] == 2:  # two segments: boxes overlap
+                    i = min(first[A], first[B])
+                    j = max(first[A], first[B])
+                    stage, s, t, d = _pair_test(i, j, points, arc, seg_v0, seg_strand, two_rc, min_self_arc)
+                    n_cand += stage > 0
+                    if stage == 2:
+                        out_ij, out_std = _push(out_ij, out_std, n_out, i, j, s, t, d)
+                        n_out += 1
+                    continue
+                na = 0
+                for a in range(first[A], first[A + 1]):
+                    _segment_box(points, seg_v0[a], radius, box_a, na)
+                    if _boxes_overlap(box_a, na, eb, y):
+                        seg_a[na] = a
+                        na += 1
+                if na == 0:
+                    continue
+                nb_ = 0
+                for b in range(first[B], first[B + 1]):
+                    _segment_box(points, seg_v0[b], radius, box_b, nb_)
+                    if _boxes_overlap(box_b, nb_, eb, x):
+                        seg_b[nb_] = b
+                        nb_ += 1
+                for p in range(na):
+                    for q in range(nb_):
+                        if not _boxes_overlap(box_a, p, box_b, q):
+                            continue
+                        i = min(seg_a[p], seg_b[q])
+                        j = max(seg_a[p], seg_b[q])
+                        stage, s, t, d = _pair_test(i, j, points, arc, seg_v0, seg_strand, two_rc, min_self_arc)
+                        n_cand += stage > 0
+                        if stage == 2:
+                            out_ij, out_std = _push(out_ij, out_std, n_out, i, j, s, t, d)
+                            n_out += 1
+        start = end
+    order = np.argsort(out_ij[:n_out, 0] * seg_v0.shape[0] + out_ij[:n_out, 1])
+    return n_group_pairs, n_cand, out_ij[order], out_std[order]
+
+
+@dataclass
+class SegmentPairs:
+    """Close segment pairs (global segment ids i < j, sorted by (i, j)) with their closest-point
+    parameters and distance."""
+
+    i: np.ndarray
+    j: np.ndarray
+    s: np.ndarray
+    t: np.ndarray
+    distance: np.ndarray
+    n_candidates: int  #: segment pairs given the exact test (boxes overlap, lines closer than 2 r_c)
+    n_group_pairs: int = 0  #: pairs of segment groups whose inflated boxes overlap
+
+
+def close_segment_pairs(points, offsets, arc, radius: float, *, min_self_arc: float | None = None,
+                        cell_size: float | None = None) -> SegmentPairs:
+    """All segment pairs whose axes are closer than ``2 * radius`` (same-strand rule applied), sorted
+    by (i, j).  ``cell_size``: the hash cell edge (default :func:`default_cell_size`)."""
+    points, offsets, arc = check_strands(points, offsets, arc)
+    if not radius > 0:
+        raise ValueError(f"contact radius must be positive, got {radius}")
+    if min_self_arc is None:
+        min_self_arc = np.pi * radius
+    seg_v0, seg_strand = strand_segments(offsets)
+    if len(seg_v0) < 2:
+        e = np.zeros(0)
+        return SegmentPairs(e.astype(np.int64), e.astype(np.int64), e, e, e, 0)
+    first, box, capsule = _segment_groups(points, seg_v0, seg_strand, float(radius), GROUP_SEGMENTS,
+                                          GROUP_DIAMETERS * 2.0 * radius)
+    h = float(cell_size) if cell_size is not None else default_cell_size(box)
+    origin = box[:, :3].min(axis=0)
+    dims = np.floor((box[:, 3:].max(axis=0) - origin) / h).astype(np.int64) + 1
+    n_cells = float(np.prod(dims.astype(np.float64)))
+    if n_cells > 2.0**62:
+        raise ValueError(f"hash cell size {h} is too small for the extent of the strands")
+    keys, ids = _cell_entries(box, np.argsort(box[:, 0], kind="stable"), origin, h, dims[0], dims[1])
+    if n_cells <= 4 * len(keys) + 65536:
+        order = _counting_sort(keys, int(n_cells))
+    else:
+        order = np.argsort(keys, kind="stable")
+    # distances are compared with a margin of rounding when groups are skipped by their capsules
+    tol = 1e-9 * (2.0 * radius + float(np.max(np.abs(points))))
+    n_group_pairs, n_cand, ij, std = _close_pairs_kernel(
+        keys[order], ids[order], first, box, capsule, origin, h, dims[0], dims[1], points, arc, seg_v0,
+        seg_strand, float(radius), float(min_self_arc), tol)
+    return SegmentPairs(ij[:, 0].copy(), ij[:, 1].copy(), std[:, 0].copy(), std[:, 1].copy(), std[:, 2].copy(),
+                        int(n_cand), int(n_group_pairs))
+
+
+# ------------------------------------------------------- reference: segment-level spatial hash
+@nb.njit(cache=True)
+def _reference_cell_entries(lo, hi, origin, h, nx, ny):
+    """(cell key, segment) for every cell overlapped by every box."""
+    n = lo.shape[0]
+    rng = np.empty((n, 6), np.int64)
+    total = 0
+    for i in range(n):
+        cnt = 1
+        for k in range(3):
+            a = np.int64(np.floor((lo[i, k] - origin[k]) / h))
+            b = np.int64(np.floor((hi[i, k] - origin[k]) / h))
+            rng[i, k] = a
+            rng[i, 3 + k] = b
+            cnt *= b - a + 1
+        total += cnt
+    keys = np.empty(total, np.int64)
+    ids = np.empty(total, np.int64)
+    m = 0
+    for i in range(n):
+        for iz in range(rng[i, 2], rng[i, 5] + 1):
+            for iy in range(rng[i, 1], rng[i, 4] + 1):
+                for ix in range(rng[i, 0], rng[i, 3] + 1):
+                    keys[m] = ix + nx * (iy + ny * iz)
+                    ids[m] = i
+                    m += 1
+    return keys, ids
+
+
+@nb.njit(cache=True)
+def _reference_close_pairs_kernel(keys, ids, lo, hi, origin, h, nx, ny, points, arc, seg_v0, seg_strand,
                         two_rc, min_self_arc):
     """Exact close segment pairs from the cell entries sorted by (cell key, box lower x).
 
@@ -411,20 +825,7 @@ def _close_pairs_kernel(keys, ids, lo, hi, origin, h, nx, ny, points, arc, seg_v
     return n_box, n_cand, out_i[:n_out], out_j[:n_out], out_s[:n_out], out_t[:n_out], out_d[:n_out]
 
 
-@dataclass
-class SegmentPairs:
-    """Close segment pairs (global segment ids i < j) with their closest-point parameters and distance."""
-
-    i: np.ndarray
-    j: np.ndarray
-    s: np.ndarray
-    t: np.ndarray
-    distance: np.ndarray
-    n_candidates: int  #: segment pairs whose inflated boxes overlap and lines are closer than 2 r_c
-    n_box_pairs: int = 0  #: segment pairs whose inflated boxes overlap
-
-
-def default_cell_size(points, seg_v0, radius: float) -> float:
+def _reference_cell_size(points, seg_v0, radius: float) -> float:
     """Hash cell edge: the mean segment length plus the contact diameter."""
     if len(seg_v0) == 0:
         return 1.0
@@ -432,9 +833,10 @@ def default_cell_size(points, seg_v0, radius: float) -> float:
     return mean_len + 2.0 * radius
 
 
-def close_segment_pairs(points, offsets, arc, radius: float, *, min_self_arc: float | None = None,
-                        cell_size: float | None = None) -> SegmentPairs:
-    """All segment pairs whose axes are closer than ``2 * radius`` (same-strand rule applied)."""
+def _reference_close_segment_pairs(points, offsets, arc, radius: float, *, min_self_arc: float | None = None,
+                                   cell_size: float | None = None) -> SegmentPairs:
+    """:func:`close_segment_pairs` by the segment-level spatial hash it replaced, kept as the
+    reference the tests compare against: the same pairs, in hash order."""
     points, offsets, arc = check_strands(points, offsets, arc)
     if not radius > 0:
         raise ValueError(f"contact radius must be positive, got {radius}")
@@ -444,7 +846,7 @@ def close_segment_pairs(points, offsets, arc, radius: float, *, min_self_arc: fl
     if len(seg_v0) < 2:
         e = np.zeros(0)
         return SegmentPairs(e.astype(np.int64), e.astype(np.int64), e, e, e, 0)
-    h = float(cell_size) if cell_size is not None else default_cell_size(points, seg_v0, radius)
+    h = float(cell_size) if cell_size is not None else _reference_cell_size(points, seg_v0, radius)
     p0, p1 = points[seg_v0], points[seg_v0 + 1]
     lo = np.minimum(p0, p1) - radius
     hi = np.maximum(p0, p1) + radius
@@ -452,23 +854,22 @@ def close_segment_pairs(points, offsets, arc, radius: float, *, min_self_arc: fl
     dims = np.floor((hi.max(axis=0) - origin) / h).astype(np.int64) + 1
     if float(np.prod(dims.astype(np.float64))) > 2.0**62:
         raise ValueError(f"hash cell size {h} is too small for the extent of the strands")
-    keys, ids = _cell_entries(lo, hi, origin, h, dims[0], dims[1])
+    keys, ids = _reference_cell_entries(lo, hi, origin, h, dims[0], dims[1])
     order = np.lexsort((ids, lo[ids, 0], keys))
-    n_box, n_cand, i, j, s, t, d = _close_pairs_kernel(
+    n_box, n_cand, i, j, s, t, d = _reference_close_pairs_kernel(
         keys[order], ids[order], lo, hi, origin, h, dims[0], dims[1], points, arc, seg_v0, seg_strand,
         2.0 * radius, float(min_self_arc))
-    return SegmentPairs(i, j, s, t, d, int(n_cand), int(n_box))
+    return SegmentPairs(i, j, s, t, d, int(n_cand))
 
 
 # ------------------------------------------------------------------------------ deduplication
 @nb.njit(cache=True)
 def _local_minima_kernel(pi, pj, ps, pt, pd, seg_strand, tol):
-    """Keep pairs whose closest point is a local minimum of the polyline/polyline distance."""
+    """Keep pairs whose closest point is a local minimum of the polyline/polyline distance (pairs
+    sorted by (i, j), as :func:`close_segment_pairs` gives them)."""
     m = pi.shape[0]
     n_seg = seg_strand.shape[0]
     keys = pi * n_seg + pj
-    order = np.argsort(keys)
-    sorted_keys = keys[order]
     keep = np.ones(m, np.bool_)
     ni = np.empty(2, np.int64)
     nj = np.empty(2, np.int64)
@@ -502,9 +903,9 @@ def _local_minima_kernel(pi, pj, ps, pt, pd, seg_strand, tol):
                 if a == b:
                     continue
                 other = a * n_seg + b
-                pos = np.searchsorted(sorted_keys, other)
-                if pos < m and sorted_keys[pos] == other:
-                    d_other = pd[order[pos]]
+                pos = np.searchsorted(keys, other)
+                if pos < m and keys[pos] == other:
+                    d_other = pd[pos]
                     if d_other < pd[k] - tol or (d_other <= pd[k] + tol and other < keys[k]):
                         keep[k] = False
     return keep
@@ -609,7 +1010,7 @@ def detect_strand_contacts(points, offsets, arc, radius: float, *, min_self_arc:
     normal = pair_normals(point_a, point_b, dir_a, dir_b, d)
     frame = contact_frames(normal, dir_a) if len(d) else np.zeros((0, 3, 3))
     if stats is not None:
-        stats.update(segments=len(seg_v0), box_pairs=pairs.n_box_pairs, candidates=pairs.n_candidates,
+        stats.update(segments=len(seg_v0), group_pairs=pairs.n_group_pairs, candidates=pairs.n_candidates,
                      close_pairs=len(pairs.i), local_minima=n_minima, strand_contacts=len(kept),
                      time_strand_pairs=t1 - t0,
                      time_strand_dedup=t2 - t1, time_strand_frames=time.perf_counter() - t2)
