@@ -249,3 +249,13 @@ def test_gauss_seidel_gives_up_early_on_dense_contacts_and_says_what_to_do(drape
     with pytest.raises(SolverFailure) as again:
         invert_groom(groom, head=sphere, params=_params(solver="gs", max_iterations=int(GS_GIVE_UP * 1600)))
     assert again.value.report["solve"]["residual"] > 1e-10
+
+
+def test_failure_message_of_a_diverged_solve_has_no_tolerance_advice():
+    from groomtool.invert import _failure_message
+
+    params = _params(solver="gs")
+    msg = _failure_message({"solver": "gs", "status": "diverged", "residual": float("nan"), "iterations": 3}, params)
+    assert "diverged" in msg and "--solver-tolerance" not in msg
+    msg = _failure_message({"solver": "gs", "status": "max_iter", "residual": 2.3e-3, "iterations": 5000}, params)
+    assert "--solver-tolerance 1e-02" in msg

@@ -532,9 +532,10 @@ def _failure_message(solve: dict, params: InversionParams) -> str:
     if solve.get("redundant_strand_fraction", 0.0) > AUTO_GS_MAX_REDUNDANT:
         msg += (f". The contacts are dense ({100 * solve['redundant_strand_fraction']:.0f} % of the strands that "
                 "carry contacts have more contact rows than dofs; docs/solvers.md section 9)")
-    accept = 10.0 ** math.ceil(math.log10(max(solve["residual"], 1e-300)))
-    msg += (f". Any forces in their cones still make the groom an exact equilibrium, only less close to the "
-            f"guess: --solver-tolerance {accept:.0e} accepts these forces")
+    if math.isfinite(solve["residual"]) and solve["residual"] > 0:
+        accept = 10.0 ** math.ceil(math.log10(solve["residual"]))
+        msg += (f". Any forces in their cones still make the groom an exact equilibrium, only less close to the "
+                f"guess: --solver-tolerance {accept:.0e} accepts these forces")
     return msg
 
 
