@@ -558,12 +558,10 @@ def _solve(problem: InverseProblem, helix: sh.SuperHelix, params: InversionParam
                 bar.update(max(0, min(sweeps, bar.total) - bar.n))
                 bar.set_postfix_str(f"residual {residual:.1e} (target {params.solver_tolerance:.0e})")
 
-            # the sweep budget is Gauss-Seidel's; clarabel keeps its own iteration limit
-            if method == "clarabel":
-                return solve_contact_problem(cp, law="soc", method=method, tol=params.solver_tolerance,
-                                             callback=show)
-            return solve_contact_problem(cp, law="soc", method=method, tol=params.solver_tolerance,
-                                         max_iter=params.max_iterations, callback=show, give_up=GS_GIVE_UP)
+            # the sweep budget (and giving up on it early) is Gauss-Seidel's; clarabel keeps its own iteration limit
+            gs_only = {} if method == "clarabel" else {"max_iter": params.max_iterations, "give_up": GS_GIVE_UP}
+            return solve_contact_problem(cp, law="soc", method=method, tol=params.solver_tolerance, callback=show,
+                                         **gs_only)
 
     res = run(method)
     fallback = None

@@ -93,17 +93,16 @@ def _run_gs_family(op, law, method, tol, max_iter, r0, options, info):
     stall = COULOMB_STALL_WINDOW if method == "auto" else None
     out = run_gauss_seidel(op, law, tol=tol, max_sweeps=max_iter, r0=r0, stall_window=stall, **options)
     info.update(local_failures=out.local_failures, history=out.history, solve_s=out.solve_s)
-    if out.projected_sweeps is not None:  # stopped by give_up
-        info["projected_sweeps"] = out.projected_sweeps
     if method == "auto" and not out.converged and out.sweeps < max_iter and np.isfinite(out.residual):
         fp_opts = {k: v for k, v in options.items() if k in ("anderson", "time_limit", "check_every", "scale")}
-        info.pop("projected_sweeps", None)
         fp = run_coulomb_fixed_point(op, tol=tol, max_sweeps=max_iter - out.sweeps, r0=out.r, **fp_opts)
         info.update(switched_to="fixed_point", gs_sweeps=out.sweeps, outer_iterations=fp.outer,
                     local_failures=out.local_failures + fp.local_failures,
                     history=out.history + [(out.sweeps + h[0], h[1], out.solve_s + h[2]) for h in fp.history[1:]],
                     solve_s=out.solve_s + fp.solve_s)
         return fp.r, out.sweeps + fp.sweeps, fp.converged, fp.residual
+    if out.projected_sweeps is not None:  # stopped by give_up
+        info["projected_sweeps"] = out.projected_sweeps
     return out.r, out.sweeps, out.converged, out.residual
 
 

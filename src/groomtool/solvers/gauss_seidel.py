@@ -472,7 +472,7 @@ def run_gauss_seidel(
     sweeps = 0
     fails = 0
     stalled = False
-    projected = None
+    gave_up_at = None  # the projection that stopped the run (give_up)
     if res <= tol or max_sweeps <= 0:
         return GSOutcome(op.to_external(x), float(res), 0, bool(res <= tol), 0, history, time.perf_counter() - t0)
     mixer = AndersonMixer(3 * m, anderson) if anderson > 0 else None
@@ -512,6 +512,7 @@ def run_gauss_seidel(
                 projected = projected_sweeps(history, tol)
                 if projected > give_up * max_sweeps:
                     stalled = True
+                    gave_up_at = projected
                     break
         if mixer is None or sweeps < anderson_start:
             x = g
@@ -529,4 +530,4 @@ def run_gauss_seidel(
         history.append((sweeps, res, time.perf_counter() - t0))
     solve_s = time.perf_counter() - t0
     return GSOutcome(op.to_external(g), float(res), sweeps, bool(res <= tol), int(fails), history, solve_s, stalled,
-                     projected if stalled else None)
+                     gave_up_at)
