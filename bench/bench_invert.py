@@ -36,7 +36,7 @@ HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
 DATA = ROOT.parent / "shared" / "data"
 RESULTS = HERE / "results"
-STAGES = ("snap_roots", "fit", "contacts", "jacobian", "solve", "rest_curvatures", "discrete_rest_data",
+STAGES = ("snap_roots", "fit", "kinematics", "contacts", "jacobian", "solve", "rest_curvatures", "discrete_rest_data",
           "equilibrium_check", "stability", "stability_with_contacts")
 
 

@@ -210,6 +210,27 @@ def test_projected_sweeps_of_a_geometric_history():
     assert projected_sweeps(flat, 1e-8) == np.inf
 
 
+def test_give_up_waits_out_a_plateau():
+    """A plateau projects far past the limit for a while; give_up waits for the projection to stay over the
+    limit for the last fifth of the run, so the run that speeds up again is not stopped."""
+    from groomtool.solvers.gauss_seidel import give_up_projection, projected_sweeps
+
+    def res(s):  # a decade per 300 sweeps, flat from 900 to 1,050, then a decade per 300 again
+        return 10.0 ** (-(min(s, 900) + max(s - 1050, 0)) / 300)
+
+    hist = [(s, res(s), 0.0) for s in range(0, 2001, 10)]
+    limit = 3800.0
+    over = [hist[k][0] for k in range(40, len(hist)) if projected_sweeps(hist[:k + 1], 1e-10) > limit]
+    assert len(over) >= 10 and 900 < over[0] < 1050  # the single-check rule would stop inside the plateau
+    assert all(give_up_projection(hist[:k + 1], 1e-10, limit, 400) is None for k in range(len(hist)))
+    # a run that stays slow is stopped, once its whole last fifth projects past the limit
+    slow = [(s, 10.0 ** (-s / 1000), 0.0) for s in range(0, 2001, 10)]  # 10,000 sweeps to 1e-10
+    stops = [k for k in range(len(slow)) if give_up_projection(slow[:k + 1], 1e-10, limit, 400) is not None]
+    assert slow[stops[0]][0] == 400
+    assert give_up_projection(slow[:stops[0] + 1], 1e-10, limit, 400) == pytest.approx(10000.0)
+    assert give_up_projection(slow[:stops[0] + 1], 1e-10, limit, 500) is None  # not judged before first_judged
+
+
 def _chain(m=100):
     """Contacts coupled in a chain, W = tridiag(-1, 2, -1) (x) I3 + 1e-6 I: plain Gauss-Seidel's slowest
     classic case (its rate is 1 - O(1 / m^2) per sweep)."""

@@ -311,7 +311,8 @@ def invert_groom(groom: Groom, head=None, params: InversionParams | None = None,
         from .contact import detect_contacts
         from .contact.jacobian import contact_jacobian
 
-        kin = sh.kinematics(helix)
+        with timer.stage("kinematics"):
+            kin = sh.kinematics(helix)
         with timer.stage("contacts"):
             pts, offsets, _, arc = sh.sample(helix, params.samples_per_element, kin)
             passes = int(params.contacts == "all") + int(head is not None)

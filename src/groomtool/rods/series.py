@@ -73,6 +73,21 @@ def _f_point(x, order, out):
 
 
 @njit(cache=True)
+def _f23_point(x):
+    """(f_2(x), f_3(x)), the same values as :func:`_f_point` returns for them (positions need only these)."""
+    if x < SERIES_X:
+        T = _COEFF_ARRAY.shape[2]
+        f2 = _COEFF_ARRAY[0, 2, T - 1]
+        f3 = _COEFF_ARRAY[0, 3, T - 1]
+        for k in range(T - 2, -1, -1):
+            f2 = f2 * x + _COEFF_ARRAY[0, 2, k]
+            f3 = f3 * x + _COEFF_ARRAY[0, 3, k]
+        return f2, f3
+    th = np.sqrt(x)
+    return (_INV_FACT[0] - np.cos(th)) / x, (_INV_FACT[1] - np.sin(th) / th) / x
+
+
+@njit(cache=True)
 def _c_kernel(t, z, order, out):
     """out[d, n, i] = d^d c_n / dz^d (t_i, z_i) with c_n = t^n f_n(z t^2)."""
     buf = np.empty((3, N_MAX + 1))

@@ -31,7 +31,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numba import njit
 
-from .series import _f_point, c_table
+from .series import _f23_point, _f_point, c_table
 
 E0 = np.array([1.0, 0.0, 0.0])
 
@@ -227,7 +227,32 @@ class Kinematics:
 
 
 def kinematics(helix: SuperHelix) -> Kinematics:
-    """Node frames and positions by the recursion R_{j+1} = R_j Q_j, C_{j+1} = C_j + R_j p_j."""
+    """Node frames and positions by the recursion R_{j+1} = R_j Q_j, C_{j+1} = C_j + R_j p_j, with the
+    per-element closed forms (module docstring) evaluated in one compiled pass (:func:`_element_kernel`;
+    the vectorised :func:`_kinematics_reference` is kept for the tests)."""
+    l = np.ascontiguousarray(helix.lengths, dtype=np.float64)
+    w = np.ascontiguousarray(helix.curvatures, dtype=np.float64)
+    S, N = l.shape
+    z = np.empty((S, N))
+    c = np.empty((5, S, N))
+    dc = np.empty((5, S, N))
+    Q = np.empty((S, N, 3, 3))
+    psi1 = np.empty((S, N, 3, 3))
+    p = np.empty((S, N, 3))
+    P = np.empty((S, N, 3))
+    D = np.empty((S, N, 3, 3))
+    DP = np.empty((S, N, 3, 3))
+    _element_kernel(l, w, z, c, dc, Q, psi1, p, P, D, DP)
+    C = np.empty((S, N + 1, 3))
+    R = np.empty((S, N + 1, 3, 3))
+    _chain(np.ascontiguousarray(helix.root_positions), np.ascontiguousarray(helix.root_frames), Q, p, C, R)
+    Theta = np.empty((S, N, 3, 3))
+    _theta_kernel(R, psi1, Theta)
+    return Kinematics(helix, C, R, Q, p, P, D, DP, Theta, c, dc, z)
+
+
+def _kinematics_reference(helix: SuperHelix) -> Kinematics:
+    """The same quantities with vectorised numpy (the reference for :func:`kinematics`)."""
     l = helix.lengths
     w = helix.curvatures
     S, N = l.shape
@@ -248,6 +273,86 @@ def kinematics(helix: SuperHelix) -> Kinematics:
            np.ascontiguousarray(Q), np.ascontiguousarray(p), C, R)
     Theta = R[:, :-1] @ psi1
     return Kinematics(helix, C, R, Q, p, P, D, DP, Theta, c, dc, z)
+
+
+@njit(cache=True)
+def _e0_jacobian(beta, dbeta, gamma, dgamma, w0, w1, w2, z, out):
+    """d/domega of (alpha I + beta(z) W + gamma(z) W^2) e0 (as _psi_apply_jacobian with v = e0):
+    -beta [e0]x + 2 beta' (w x e0) w^T + gamma (w e0^T + w0 I - 2 e0 w^T) + 2 gamma' (w w0 - z e0) w^T."""
+    w = (w0, w1, w2)
+    wxv = (0.0, w2, -w1)
+    w2v = (w0 * w0 - z, w1 * w0, w2 * w0)
+    for a in range(3):
+        for b in range(3):
+            sk = 0.0
+            if a == 1 and b == 2:
+                sk = -1.0
+            elif a == 2 and b == 1:
+                sk = 1.0
+            inner = w[a] * (1.0 if b == 0 else 0.0) + (w0 if a == b else 0.0) - 2.0 * (1.0 if a == 0 else 0.0) * w[b]
+            out[a, b] = (-beta * sk + 2.0 * dbeta * wxv[a] * w[b] + gamma * inner
+                         + 2.0 * dgamma * w2v[a] * w[b])
+
+
+@njit(cache=True)
+def _element_kernel(l, w, z, c, dc, Q, psi1, p, P, D, DP):
+    """Per element: z = |omega|^2, c_n and dc_n/dz (series.c_table), Q = Psi_0(l), Psi_1(l),
+    p = Psi_1(l) e0, P = Psi_2(l) e0, D = dp/domega, DP = dP/domega."""
+    buf = np.empty((3, 5))
+    W = np.empty((3, 3))
+    W2 = np.empty((3, 3))
+    S, N = l.shape
+    for s in range(S):
+        for j in range(N):
+            ti = l[s, j]
+            w0, w1, w2 = w[s, j, 0], w[s, j, 1], w[s, j, 2]
+            zz = w0 * w0 + w1 * w1 + w2 * w2
+            z[s, j] = zz
+            t2 = ti * ti
+            _f_point(zz * t2, 1, buf)
+            tn = 1.0
+            for n in range(5):
+                c[n, s, j] = tn * buf[0, n]
+                dc[n, s, j] = tn * t2 * buf[1, n]
+                tn *= ti
+            c1, c2, c3, c4 = c[1, s, j], c[2, s, j], c[3, s, j], c[4, s, j]
+            W[0, 0] = 0.0
+            W[0, 1] = -w2
+            W[0, 2] = w1
+            W[1, 0] = w2
+            W[1, 1] = 0.0
+            W[1, 2] = -w0
+            W[2, 0] = -w1
+            W[2, 1] = w0
+            W[2, 2] = 0.0
+            for a in range(3):
+                for b in range(3):
+                    W2[a, b] = W[a, 0] * W[0, b] + W[a, 1] * W[1, b] + W[a, 2] * W[2, b]
+            for a in range(3):
+                for b in range(3):
+                    eye = 1.0 if a == b else 0.0
+                    Q[s, j, a, b] = eye + c1 * W[a, b] + c2 * W2[a, b]
+                    psi1[s, j, a, b] = ti * eye + c2 * W[a, b] + c3 * W2[a, b]
+                p[s, j, a] = psi1[s, j, a, 0]
+            # P = (l^2/2) e0 + c3 w x e0 + c4 (w w0 - z e0)
+            half = 0.5 * ti * ti
+            P[s, j, 0] = half + c3 * 0.0 + c4 * (w0 * w0 - zz)
+            P[s, j, 1] = c3 * w2 + c4 * (w1 * w0)
+            P[s, j, 2] = c3 * (-w1) + c4 * (w2 * w0)
+            _e0_jacobian(c2, dc[2, s, j], c3, dc[3, s, j], w0, w1, w2, zz, D[s, j])
+            _e0_jacobian(c3, dc[3, s, j], c4, dc[4, s, j], w0, w1, w2, zz, DP[s, j])
+
+
+@njit(cache=True)
+def _theta_kernel(R, psi1, Theta):
+    """Theta_j = R_j Psi_1(l_j)."""
+    S, N = psi1.shape[0], psi1.shape[1]
+    for s in range(S):
+        for j in range(N):
+            for a in range(3):
+                for b in range(3):
+                    Theta[s, j, a, b] = (R[s, j, a, 0] * psi1[s, j, 0, b] + R[s, j, a, 1] * psi1[s, j, 1, b]
+                                         + R[s, j, a, 2] * psi1[s, j, 2, b])
 
 
 @njit(cache=True)
@@ -361,8 +466,38 @@ def sample(helix: SuperHelix, per_element: int = 4, kin: Kinematics | None = Non
     elem = np.minimum(local // per_element, np.maximum(helix.n_elements[strand] - 1, 0))
     frac = (local - elem * per_element) / per_element
     s = helix.element_starts[strand, elem] + frac * helix.lengths[strand, elem]
-    pos, _ = evaluate(helix, strand, s, kin)
-    return pos, offsets, strand, s
+    return evaluate_positions(helix, strand, s, kin), offsets, strand, s
+
+
+def evaluate_positions(helix: SuperHelix, strand, s, kin: Kinematics | None = None) -> np.ndarray:
+    """Positions (P, 3) at arc lengths s on the given strands: :func:`evaluate` without the frames."""
+    kin = kin if kin is not None else kinematics(helix)
+    strand = np.ascontiguousarray(strand, dtype=np.int64)
+    elem, t = locate(helix, strand, s)
+    pos = np.empty((len(t), 3))
+    _position_kernel(kin.C, kin.R, np.ascontiguousarray(helix.curvatures), strand, elem, t, pos)
+    return pos
+
+
+@njit(cache=True)
+def _position_kernel(C, R, w, strand, elem, t, pos):
+    """C(s) = C_e + R_e (t e0 + c2 w x e0 + c3 w x (w x e0)), as in :func:`_evaluate_kernel`."""
+    p = np.empty(3)
+    for i in range(t.shape[0]):
+        k, e, ti = strand[i], elem[i], t[i]
+        w0, w1, w2 = w[k, e, 0], w[k, e, 1], w[k, e, 2]
+        z = w0 * w0 + w1 * w1 + w2 * w2
+        t2 = ti * ti
+        f2, f3 = _f23_point(z * t2)
+        c2, c3 = t2 * f2, t2 * ti * f3
+        p[0] = ti + c3 * (w0 * w0 - z)
+        p[1] = c2 * w2 + c3 * w0 * w1
+        p[2] = -c2 * w1 + c3 * w0 * w2
+        for a in range(3):
+            acc = C[k, e, a]
+            for b in range(3):
+                acc += R[k, e, a, b] * p[b]
+            pos[i, a] = acc
 
 
 def point_jacobians(helix: SuperHelix, strand, s, kin: Kinematics | None = None):
