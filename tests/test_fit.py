@@ -3,8 +3,12 @@
 - helix through a co-helical pair: residuals, uniqueness, degenerate cases (hypothesis over helices);
 - co-helicity relaxation against a dense KKT solve;
 - recovery of a known Super-Helix from its exact nodes and tangents, and from a dense polyline;
-- sampling (local cubic), closest-point distances against brute force, tolerances and adaptivity.
+- sampling (local cubic), closest-point distances against brute force, tolerances and adaptivity;
+- the numba kernels against the numpy versions they replace (kept as private references).
 """
+
+import math
+from contextlib import contextmanager
 
 import numpy as np
 import pytest
@@ -12,12 +16,18 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
+from groomtool.fit import cohelicity as fit_cohelicity
 from groomtool.fit import effective_tolerance, fit_groom, fit_polyline_fixed, relax_points, solve_helix
+from groomtool.fit import error as fit_error
+from groomtool.fit import helix as fit_helix
+from groomtool.fit import kernels as fit_kernels
+from groomtool.fit import sampling as fit_sampling
+from groomtool.fit import state as fit_state
 from groomtool.fit.cohelicity import constraint_residuals
 from groomtool.fit.error import closest_distances, evaluate_table
 from groomtool.fit.helix import cohelicity_defect, helix_chord, helix_residuals, rotate
-from groomtool.fit.sampling import PolylineCurves, drop_repeated_vertices, ensure_four_vertices
-from groomtool.fit.state import curve_table, root_frames
+from groomtool.fit.sampling import PolylineCurves, drop_repeated_vertices, ensure_four_vertices, vertex_arc_lengths
+from groomtool.fit.state import assemble, curve_table, root_frames
 from groomtool.groom import Groom, GroomError
 from groomtool.rods import superhelix as sh
 
@@ -345,3 +355,204 @@ def test_tolerances_and_reporting():
     assert not res.converged.any() and np.array_equal(res.failed, [0, 1])
     assert (res.helix.n_elements == 4).all()
     assert res.summary()["not_converged"] == 2
+
+
+# --------------------------------------------------------------------------- numba kernels vs numpy references
+class _LibmNumpy:
+    """numpy with libm's sin, cos, arctan2 and arcsin, the functions the numba kernels call (numpy may
+    use its own SIMD versions, last-bit different): the numpy references then do exactly the kernels'
+    operations, and the two must agree bit for bit."""
+
+    def __getattr__(self, name):
+        return getattr(np, name)
+
+    @staticmethod
+    def _libm(f, *args):
+        return np.asarray(np.frompyfunc(f, len(args), 1)(*args), dtype=np.float64)[()]
+
+    def sin(self, x):
+        return self._libm(math.sin, x)
+
+    def cos(self, x):
+        return self._libm(math.cos, x)
+
+    def arctan2(self, y, x):
+        return self._libm(math.atan2, y, x)
+
+    def arcsin(self, x):
+        return self._libm(math.asin, x)
+
+    def sinc(self, x):
+        y = np.pi * np.where(np.asarray(x) == 0, 1.0e-20, x)
+        return self.sin(y) / y
+
+
+@contextmanager
+def libm_numpy():
+    """Run the numpy references with :class:`_LibmNumpy` (call the kernels first: they compile outside)."""
+    modules = (fit_helix, fit_kernels, fit_error)
+    saved = [m.np for m in modules]
+    for m in modules:
+        m.np = _LibmNumpy()
+    try:
+        yield
+    finally:
+        for m, s in zip(modules, saved):
+            m.np = s
+
+
+def assert_same(a, b):
+    """Equal fields (dataclasses or tuples of arrays), bit for bit."""
+    pairs = zip(vars(a).values(), vars(b).values()) if hasattr(a, "__dict__") else zip(a, b)
+    for x, y in pairs:
+        assert np.shape(x) == np.shape(y)
+        np.testing.assert_array_equal(x, y)
+
+
+def helix_cases(seed, n=120):
+    """(t0, t1, chord): general helices (winding 1e-10 .. 2 pi, some chords off co-helicity) and, in
+    turn, the cases of HelixSolution: straight (1), full turn (2), no helix (3), t1 = -t0, and
+    nearly straight pieces with the chord just off the bisector."""
+    rng = np.random.default_rng(seed)
+    t0 = unit(rng.normal(size=(n, 3)))
+    axis = unit(rng.normal(size=(n, 3)))
+    theta = 10.0 ** rng.uniform(-10, np.log10(2 * np.pi - 1e-3), n)
+    length = rng.uniform(1e-4, 0.1, n)
+    t1 = rotate(theta[:, None] * axis, t0)
+    c = helix_chord(theta[:, None] * axis, length, t0)
+    c += rng.choice([0.0, 1e-12, 1e-6], size=(n, 1)) * length[:, None] * rng.normal(size=(n, 3))
+    case = np.arange(n) % 6
+    k = case == 1                                                     # straight
+    t1[k], c[k] = t0[k], length[k, None] * t0[k]
+    k = case == 2                                                     # one full turn about the chord
+    c[k] = helix_chord(2 * np.pi * axis[k], length[k], t0[k])
+    t1[k] = t0[k]
+    k = case == 3                                                     # t1 == t0, chord not ahead
+    t1[k], c[k] = t0[k], -length[k, None] * unit(axis[k] + t0[k])
+    k = case == 4                                                     # antipodal
+    t1[k], c[k] = -t0[k], length[k, None] * unit(np.cross(t0[k], axis[k]))
+    k = case == 5                                                     # nearly straight, chord off m
+    t1[k] = rotate(1e-11 * axis[k], t0[k])
+    c[k] = length[k, None] * unit(t0[k] + 1e-5 * rng.normal(size=(k.sum(), 3)))
+    return t0, t1, c
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), budget=st.sampled_from([None, 0.0, 1e-6, 1e-3]))
+def test_helix_kernel_matches_numpy(seed, budget):
+    t0, t1, c = helix_cases(seed)
+    tol = None if budget is None else budget * np.linalg.norm(c, axis=1)
+    sol = solve_helix(t0, t1, c, chord_tolerance=tol)
+    assert {0, 1, 2, 3} <= set(sol.kind.tolist())
+    with libm_numpy():
+        ref = fit_helix._solve_helix_numpy(t0, t1, c, chord_tolerance=tol)
+    assert_same(sol, ref)
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), budget=st.sampled_from([0.0, 1e-5, 1e-3, 1e-1]))
+def test_chain_kernel_matches_numpy(seed, budget):
+    """Padded strands, straight runs (t_{i+1} = t_i) and single-element strands included."""
+    rng = np.random.default_rng(seed)
+    S, N = 12, 9
+    T = unit(np.cumsum(rng.normal(size=(S, N + 1, 3)) * rng.choice([1e-6, 0.1, 1.0], size=(S, 1, 1)), axis=1)
+             + rng.normal(size=(S, 1, 3)))
+    T[0, 3:7] = T[0, 3]
+    P = np.cumsum(0.01 * T + 1e-4 * rng.normal(size=(S, N + 1, 3)), axis=1)
+    n = rng.integers(1, N + 1, S)
+    n[1] = 1
+    tol = budget * rng.uniform(0.5, 1.5, S) * 0.01
+    sol = fit_helix.solve_chain(P, T, n, tol)
+    with libm_numpy():
+        ref = fit_helix._solve_chain_numpy(P, T, n, tol)
+    assert_same(sol, ref)
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1))
+def test_assemble_kernel_matches_numpy(seed):
+    """Straight (Phi = 0), tiny and near-full-turn rotations, and a zero-length element."""
+    rng = np.random.default_rng(seed)
+    S, N = 10, 12
+    n = rng.integers(1, N + 1, S)
+    mask = np.arange(N)[None] < n[:, None]
+    phi = unit(rng.normal(size=(S, N, 3))) * rng.choice([0.0, 1e-12, 1e-4, 0.5, 2.0, 6.2], size=(S, N, 1))
+    lengths = rng.uniform(1e-3, 0.05, (S, N))
+    lengths[0, 0] = 0.0
+    phi[~mask], lengths[~mask] = 0.0, 0.0
+    roots, t = rng.normal(size=(S, 3)), rng.normal(size=(S, 3))
+    helix, table = assemble(roots, t, phi, lengths, n)
+    with libm_numpy():
+        ref_helix, ref_table = fit_state._assemble_numpy(roots, t, phi, lengths, n)
+    for name in ("root_positions", "root_frames", "lengths", "n_elements"):
+        np.testing.assert_array_equal(getattr(helix, name), getattr(ref_helix, name))
+    for name in ("elem_offsets", "start", "length", "Omega", "strand_length"):
+        np.testing.assert_array_equal(getattr(table, name), getattr(ref_table, name))
+    # the frames go through 3x3 products (numpy: BLAS, with or without fused multiply-adds)
+    np.testing.assert_allclose(helix.curvatures, ref_helix.curvatures, rtol=0,
+                               atol=1e-13 * np.abs(ref_helix.curvatures).max())
+    np.testing.assert_allclose(table.T, ref_table.T, rtol=0, atol=1e-13)
+    np.testing.assert_allclose(table.C, ref_table.C, rtol=0, atol=1e-13)
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), tol=st.sampled_from([1e-6, 1e-3, 1e-2]))
+def test_error_kernels_match_numpy(seed, tol):
+    """Vertices near and far (element hops, clamping at the ends), straight and tiny-curvature
+    elements, strands of up to 300 vertices (the pairwise mean past 128 terms), pre-check and full."""
+    rng = np.random.default_rng(seed)
+    helix = random_superhelix(seed % 1000, n_strands=5, n_elements=7, scale=30.0)
+    helix.curvatures[0, 2] = 0.0
+    helix.curvatures[1, 3] = 1e-9
+    table = curve_table(helix)
+    counts = rng.integers(2, 300, 5)
+    offsets = np.concatenate([[0], np.cumsum(counts)])
+    strand = np.repeat(np.arange(5), counts)
+    frac = np.concatenate([np.sort(rng.uniform(0, 1, k)) for k in counts])
+    frac[offsets[:-1]], frac[offsets[1:] - 1] = 0.0, 1.0
+    pos, _ = sh.evaluate(helix, strand, frac * helix.strand_lengths[strand])
+    pos += rng.choice([1e-5, 1e-3, 2e-2], size=(len(pos), 1)) * rng.normal(size=pos.shape)
+    active = np.array([4, 0, 2, 1, 3])
+    sub = curve_table(helix.subset(active))
+    full = rng.uniform(size=5) < 0.3
+    tols = tol * rng.uniform(0.5, 2.0, 5)
+    got = fit_error.strand_errors(sub, offsets, pos, frac, active, helix.n_elements[active], tols, full)
+    s = frac * helix.strand_lengths[strand] + 2e-3 * rng.normal(size=len(frac))
+    d = closest_distances(table, pos, strand, s, iterations=4)
+    with libm_numpy():
+        ref = fit_error._strand_errors_numpy(sub, offsets, pos, frac, active, helix.n_elements[active], tols, full)
+        ref_d = fit_error._closest_distances_numpy(table, pos, strand, s, iterations=4)
+    assert_same(got, ref)
+    assert_same(d, ref_d)
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1))
+def test_sampling_and_relaxation_kernels_match_numpy(seed):
+    """Arc lengths, cleaning (repeated vertices, an empty strand), the local cubics (samples off the
+    ends, on vertices, at the tip) and the co-helicity relaxation (straight pieces, padding)."""
+    rng = np.random.default_rng(seed)
+    counts = rng.integers(3, 40, 6)                                 # >= 2 distinct after cleaning
+    counts[2] = 0
+    offsets = np.concatenate([[0], np.cumsum(counts)])
+    pts = np.cumsum(rng.normal(size=(offsets[-1], 3)) * rng.uniform(1e-3, 1e-1), axis=0)
+    pts[offsets[1] + 1] = pts[offsets[1]]                            # an exact repeat
+    pts[offsets[3] + 1] = pts[offsets[3]] + 1e-13                    # a near repeat
+    assert_same(vertex_arc_lengths(pts, offsets), fit_sampling._vertex_arc_lengths_numpy(pts, offsets))
+    assert_same(drop_repeated_vertices(pts, offsets), fit_sampling._drop_repeated_vertices_numpy(pts, offsets))
+    p, off, _ = drop_repeated_vertices(pts[:offsets[2]], offsets[:3])
+    p, off = ensure_four_vertices(p, off)
+    curves = PolylineCurves(p, off)
+    strand = rng.integers(0, 2, 400)
+    s = rng.uniform(-0.1, 1.1, 400) * curves.lengths[strand]
+    s[:20] = curves.arc[off[strand[:20]] + 2]
+    s[20:30] = curves.lengths[strand[20:30]]
+    assert_same(curves.evaluate(strand, s), curves._evaluate_numpy(strand, s))
+    S, N = 7, 8
+    Q = np.cumsum(rng.normal(size=(S, N + 1, 3)), axis=1)
+    T = unit(rng.normal(size=(S, N + 1, 3)))
+    T[0] = T[0, 0]
+    T[1, 2:6] = T[1, 2]
+    n = rng.integers(1, N + 1, S)
+    np.testing.assert_array_equal(fit_cohelicity._project(Q, T, n, 1e-24),
+                                  fit_cohelicity._project_numpy(Q, T[:, 1:] - T[:, :-1], n, 1e-24))

@@ -2,7 +2,9 @@
 
 import numpy as np
 import pytest
+from test_fit import libm_numpy
 
+from groomtool.fit import cohelicity, error, fitter, helix, sampling, state
 from groomtool.fit import fit_groom
 from groomtool.fit.error import closest_distances
 from groomtool.fit.sampling import vertex_arc_lengths
@@ -67,3 +69,42 @@ def test_harolongo_within_tolerance(harolongo):
     res = fit_groom(harolongo, tolerance=5e-4)
     check(harolongo, res, 5e-4)
     assert np.all(res.relative_max_error < 5e-4 / 0.2)
+
+
+def numpy_pipeline(monkeypatch):
+    """fit_groom with every numba kernel replaced by the numpy version it was ported from."""
+    def assemble_flat(roots, tangents, phi, lengths, n, N, frames=None):
+        mask = np.arange(N)[None, :] < n[:, None]
+        padded_phi, padded_l = np.zeros((len(n), N, 3)), np.zeros((len(n), N))
+        padded_phi[mask], padded_l[mask] = phi, lengths
+        return state._assemble_numpy(roots, tangents, padded_phi, padded_l, n, frames)
+
+    monkeypatch.setattr(fitter, "solve_chain", helix._solve_chain_numpy)
+    monkeypatch.setattr(fitter, "assemble_flat", assemble_flat)
+    monkeypatch.setattr(fitter, "strand_errors", error._strand_errors_numpy)
+    monkeypatch.setattr(fitter, "drop_repeated_vertices", sampling._drop_repeated_vertices_numpy)
+    monkeypatch.setattr(fitter, "vertex_arc_lengths", sampling._vertex_arc_lengths_numpy)
+    monkeypatch.setattr(sampling, "vertex_arc_lengths", sampling._vertex_arc_lengths_numpy)
+    monkeypatch.setattr(sampling.PolylineCurves, "evaluate", sampling.PolylineCurves._evaluate_numpy)
+    monkeypatch.setattr(cohelicity, "_project", lambda X, T, n, eps: cohelicity._project_numpy(
+        X, T[:, 1:] - T[:, :-1], n, eps))
+
+
+def test_kernels_reproduce_the_numpy_fit(harolongo, monkeypatch):
+    """The numba pipeline against the numpy one (with libm's arctan2, arcsin, sin, cos, which the kernels
+    call) on a quarter of harolongo: the same N per strand, SuperHelix and errors."""
+    sub = Groom.from_strands([harolongo.points[harolongo.offsets[i]:harolongo.offsets[i + 1]]
+                              for i in range(0, harolongo.n_strands, 4)], source="harolongo (every 16th strand)")
+    res = fit_groom(sub, tolerance=5e-4)
+    with monkeypatch.context() as m, libm_numpy():
+        numpy_pipeline(m)
+        ref = fit_groom(sub, tolerance=5e-4)
+    assert res.passes == ref.passes > 2
+    np.testing.assert_array_equal(res.helix.n_elements, ref.helix.n_elements)
+    for name in ("root_positions", "root_frames", "lengths"):
+        np.testing.assert_array_equal(getattr(res.helix, name), getattr(ref.helix, name))
+    # the frames go through 3x3 products (numpy: BLAS, with or without fused multiply-adds)
+    q = ref.helix.curvatures
+    np.testing.assert_allclose(res.helix.curvatures, q, rtol=0, atol=1e-12 * np.abs(q).max())
+    np.testing.assert_allclose(res.max_error, ref.max_error, rtol=1e-10, atol=0)
+    np.testing.assert_allclose(res.mean_error, ref.mean_error, rtol=1e-10, atol=0)

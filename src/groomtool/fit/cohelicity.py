@@ -16,13 +16,14 @@ b_i = (Q_{i+1} - Q_i) . dt_i:
 A A^T is the Gram matrix of the constraint gradients: positive semi-definite, singular where
 dt_i = 0 (a straight piece has no constraint).  It is regularised by EPS on the diagonal, which only
 shrinks the moves (lambda_i dt_i) and leaves a residual g_i <= |Q_{i+1} - Q_i| sqrt(EPS) where
-|dt_i|^2 < EPS.  Solved by the Thomas algorithm (no pivoting needed: SPD), vectorised over strands,
-looping over i.
+|dt_i|^2 < EPS.  Solved by the Thomas algorithm (no pivoting needed: SPD), a numba kernel strand by
+strand (``_project_numpy``: the same, vectorised over strands, kept as the reference).
 """
 
 from __future__ import annotations
 
 import numpy as np
+from numba import njit
 
 from .kernels import dot
 
@@ -42,7 +43,7 @@ def relax_points(samples, tangents, n_elements=None, eps: float = EPS) -> np.nda
         Q, T = Q[None], T[None]
     S, N1, _ = Q.shape
     n_elements = np.full(S, N1 - 1, dtype=np.int64) if n_elements is None else np.asarray(n_elements, dtype=np.int64)
-    P = Q.copy() if N1 == 1 else _project(Q, T[:, 1:] - T[:, :-1], n_elements, eps)
+    P = Q.copy() if N1 == 1 else _project(Q, T, n_elements, eps)
     return P[0] if single else P
 
 
@@ -59,7 +60,51 @@ def constraint_residuals(points, tangents, n_elements=None) -> np.ndarray:
     return g[0] if single else g
 
 
-def _project(X, V, n_elements, eps):
+def _project(X, T, n_elements, eps):
+    """:func:`_project_numpy` with V = T[:, 1:] - T[:, :-1] (numba)."""
+    out = np.empty(X.shape)
+    _project_kernel(np.ascontiguousarray(X), np.ascontiguousarray(T), np.ascontiguousarray(n_elements, dtype=np.int64),
+                    eps, out)
+    return out
+
+
+@njit(cache=True, error_model="numpy")
+def _project_kernel(X, T, n_elements, eps, out):
+    """Strand by strand, the operations of :func:`_project_numpy` (padding included)."""
+    S, N1, _ = X.shape
+    N = N1 - 1
+    V, dx = np.zeros((N, 3)), np.zeros((N, 3))
+    diag, off, rhs, cp, rp, lam = np.empty(N), np.zeros(N), np.empty(N), np.empty(N), np.empty(N), np.empty(N)
+    for s in range(S):
+        for i in range(N):
+            real = i < n_elements[s]
+            for c in range(3):
+                V[i, c] = T[s, i + 1, c] - T[s, i, c] if real else 0.0
+                dx[i, c] = X[s, i + 1, c] - X[s, i, c] if real else 0.0
+            diag[i] = 2.0 * (V[i, 0] * V[i, 0] + V[i, 1] * V[i, 1] + V[i, 2] * V[i, 2])
+            rhs[i] = -(dx[i, 0] * V[i, 0] + dx[i, 1] * V[i, 1] + dx[i, 2] * V[i, 2])
+        diag[0] *= 0.5
+        for i in range(N):
+            diag[i] += eps
+        for i in range(N - 1):
+            off[i] = -(V[i, 0] * V[i + 1, 0] + V[i, 1] * V[i + 1, 1] + V[i, 2] * V[i + 1, 2])
+        cp[0], rp[0] = diag[0], rhs[0]
+        for i in range(1, N):
+            w = off[i - 1] / cp[i - 1]
+            cp[i] = diag[i] - w * off[i - 1]
+            rp[i] = rhs[i] - w * rp[i - 1]
+        lam[N - 1] = rp[N - 1] / cp[N - 1]
+        for i in range(N - 2, -1, -1):
+            lam[i] = (rp[i] - off[i] * lam[i + 1]) / cp[i]
+        for c in range(3):
+            out[s, 0, c] = X[s, 0, c]
+            for j in range(1, N1):
+                out[s, j, c] = X[s, j, c] + lam[j - 1] * V[j - 1, c]
+                if j < N:
+                    out[s, j, c] -= lam[j] * V[j, c]
+
+
+def _project_numpy(X, V, n_elements, eps):
     """Closest X' to X, X'_0 = X_0, with (X'_{i+1} - X'_i) . V_i = 0 for i < n: the KKT system above.
 
     X (S, N+1, 3); V (S, N, 3) the constraint directions (dt_i); padding has V = 0.

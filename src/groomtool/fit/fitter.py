@@ -22,7 +22,7 @@ from .cohelicity import constraint_residuals, relax_points
 from .error import strand_errors
 from .helix import helix_residuals, solve_chain, solve_helix
 from .sampling import PolylineCurves, drop_repeated_vertices, ensure_four_vertices, vertex_arc_lengths
-from .state import CurveTable, assemble
+from .state import CurveTable, assemble_flat
 
 _clock = time.perf_counter  # stage timings (wall clock); the bench may swap in time.process_time
 GROWTH_MIN, GROWTH_MAX = 1.2, 2.0   # bounds on the factor N grows by between passes
@@ -110,8 +110,7 @@ def _fit_samples(Q, T, n_elements, relax=True, chord_tolerance=None, timings=Non
     (:func:`~groomtool.fit.helix.solve_chain`).
     """
     timings = timings if timings is not None else {}
-    S, N1, _ = Q.shape
-    N = N1 - 1
+    N = Q.shape[1] - 1
     t = _clock()
     P = relax_points(Q, T, n_elements) if relax else Q.copy()
     t1 = _clock()
@@ -123,11 +122,7 @@ def _fit_samples(Q, T, n_elements, relax=True, chord_tolerance=None, timings=Non
         sol = solve_chain(P, T, n_elements, chord_tolerance)
     t2 = _clock()
     timings["helix"] = timings.get("helix", 0.0) + t2 - t1
-    phi = np.zeros((S, N, 3))
-    lengths = np.zeros((S, N))
-    phi[mask] = sol.phi
-    lengths[mask] = sol.length
-    helix, table = assemble(P[:, 0], T[:, 0], phi, lengths, n_elements, frames)
+    helix, table = assemble_flat(P[:, 0], T[:, 0], sol.phi, sol.length, n_elements, N, frames)
     timings["assemble"] = timings.get("assemble", 0.0) + _clock() - t2
     return helix, table, P, sol, mask
 

@@ -30,6 +30,11 @@ is amplified noise; the minimal rotation (phi = 0: a planar arc, least twist, l 
 returned instead, with a chord error |c| delta.  t1 = t0 to round-off (d < 1e-15) with the chord off
 t0: one full turn about c (Phi = 2 pi c/|c|, l = |c| / (t0 . c/|c|)).  t1 = -t0 (m = 0): b2 is
 taken along the chord, and the same equation gives the half turn about t0 x c.
+
+:func:`solve_helix` and :func:`solve_chain` run numba kernels, one element at a time, with the
+operations of the array versions ``_solve_helix_numpy`` / ``_solve_chain_numpy`` (kept as references).
+The kernels call libm's arctan2 and arcsin; numpy may use its own SIMD versions (it does with
+AVX-512), which differ in the last bit: the results then agree to round-off, not bit for bit.
 """
 
 from __future__ import annotations
@@ -37,8 +42,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
-from .kernels import cross, dot, f123
+from .kernels import cross, dot, f123, f123_s, sinc_s
 
 _TINY = 1e-300
 STRAIGHT_D = 1e-9        # d below this and chord along t0 + t1: a planar arc (twist undetermined)
@@ -90,6 +96,20 @@ def solve_helix(t0, t1, chord, chord_tolerance=None, max_iter: int = 100) -> Hel
     of the other elements down to the tolerance instead was tried: it biases the element lengths,
     shortening curly strands by ~0.4 %.)
     """
+    t0 = np.ascontiguousarray(np.asarray(t0, dtype=np.float64).reshape(-1, 3))
+    t1 = np.ascontiguousarray(np.asarray(t1, dtype=np.float64).reshape(-1, 3))
+    chord = np.ascontiguousarray(np.asarray(chord, dtype=np.float64).reshape(-1, 3))
+    E = len(t0)
+    gated = chord_tolerance is not None
+    budget = np.ascontiguousarray(np.broadcast_to(np.asarray(chord_tolerance if gated else 0.0,
+                                                             dtype=np.float64), (E,)))
+    out = HelixSolution(np.zeros((E, 3)), np.zeros(E), np.zeros(E, dtype=np.int64), np.zeros(E, dtype=np.int64))
+    _solve_flat(t0, t1, chord, budget, gated, max_iter, out.phi, out.length, out.iterations, out.kind)
+    return out
+
+
+def _solve_helix_numpy(t0, t1, chord, chord_tolerance=None, max_iter: int = 100) -> HelixSolution:
+    """Reference for :func:`solve_helix`, vectorised over elements (numpy)."""
     t0, _ = _unit(np.asarray(t0, dtype=np.float64).reshape(-1, 3))
     t1, _ = _unit(np.asarray(t1, dtype=np.float64).reshape(-1, 3))
     chord = np.asarray(chord, dtype=np.float64).reshape(-1, 3)
@@ -206,14 +226,26 @@ def cohelicity_defect(t0, t1, chord):
     return dot(chord, np.asarray(t1) - np.asarray(t0))
 
 
-def solve_chain(P, T, n_elements, chord_tolerance) -> HelixSolution:
+def solve_chain(P, T, n_elements, chord_tolerance, max_iter: int = 100) -> HelixSolution:
     """Helices along strands, planar arcs where within tolerance, with error feedback; flat (E,).
 
     P, T (S, N+1, 3) padded points and tangents, n_elements (S,), chord_tolerance (S,) metres.
     Element i aims at P_{i+1} from the node C_i actually reached: C_{i+1} = C_i + chord(Phi_i, l_i, t_i)
     with (Phi_i, l_i) the helix of (t_i, t_{i+1}) for the chord P_{i+1} - C_i within the tolerance,
-    so the chord deviations do not accumulate along the strand.  A loop over i, batched over strands.
+    so the chord deviations do not accumulate along the strand.
     """
+    P = np.ascontiguousarray(P, dtype=np.float64)
+    T = np.ascontiguousarray(T, dtype=np.float64)
+    n_elements = np.ascontiguousarray(n_elements, dtype=np.int64)
+    tol = np.ascontiguousarray(np.broadcast_to(np.asarray(chord_tolerance, dtype=np.float64), (len(P),)))
+    E = int(n_elements.sum())
+    out = HelixSolution(np.zeros((E, 3)), np.zeros(E), np.zeros(E, dtype=np.int64), np.zeros(E, dtype=np.int64))
+    _chain_kernel(P, T, n_elements, tol, max_iter, out.phi, out.length, out.iterations, out.kind)
+    return out
+
+
+def _solve_chain_numpy(P, T, n_elements, chord_tolerance) -> HelixSolution:
+    """Reference for :func:`solve_chain`: a loop over i, batched over strands (numpy)."""
     S, N1, _ = P.shape
     N = N1 - 1
     phi, lengths = np.zeros((S, N, 3)), np.zeros((S, N))
@@ -222,8 +254,169 @@ def solve_chain(P, T, n_elements, chord_tolerance) -> HelixSolution:
     tol = np.broadcast_to(np.asarray(chord_tolerance, dtype=np.float64), (S,))
     for i in range(N):
         act = np.nonzero(i < n_elements)[0]
-        sol = solve_helix(T[act, i], T[act, i + 1], P[act, i + 1] - C[act], tol[act])
+        sol = _solve_helix_numpy(T[act, i], T[act, i + 1], P[act, i + 1] - C[act], tol[act])
         phi[act, i], lengths[act, i], its[act, i], kind[act, i] = sol.phi, sol.length, sol.iterations, sol.kind
         C[act] += helix_chord(sol.phi, sol.length, T[act, i])
     mask = np.arange(N)[None, :] < n_elements[:, None]
     return HelixSolution(phi[mask], lengths[mask], its[mask], kind[mask])
+
+
+# --------------------------------------------------------------------------- numba kernels
+@njit(cache=True, error_model="numpy")
+def _max_s(a, b):
+    """np.maximum on scalars (NaN propagates)."""
+    return a if (a >= b or a != a) else b
+
+
+@njit(cache=True, error_model="numpy")
+def _F_s(phi, d, mb1, mb2, gamma):
+    """:func:`_F` on scalars."""
+    return _F_cs(np.cos(phi), np.sin(phi), phi, d, mb1, mb2, gamma)
+
+
+@njit(cache=True, error_model="numpy")
+def _F_cs(c, s, phi, d, mb1, mb2, gamma):
+    """:func:`_F` with c = cos(phi), s = sin(phi) given."""
+    ma = c * mb1 + s * mb2
+    me = c * mb2 - s * mb1
+    h = np.arctan2(d, me)
+    H = h * ma
+    dh = d * ma / (d * d + me * me)
+    dH = dh * ma + h * me
+    F = np.arctan2(d, H) - gamma + phi
+    dF = 1.0 - d * dH / (d * d + H * H)
+    return F, dF
+
+
+@njit(cache=True, error_model="numpy")
+def _unit_s(a0, a1, a2):
+    """v / max(|v|, tiny), as :func:`_unit`."""
+    nrm = _max_s(np.sqrt(a0 * a0 + a1 * a1 + a2 * a2), _TINY)
+    return a0 / nrm, a1 / nrm, a2 / nrm
+
+
+@njit(cache=True, error_model="numpy")
+def _solve_one(a0, a1, a2, b0, b1, b2, c0, c1, c2, budget, gated, max_iter, k, phi, length, iterations, kind):
+    """One element of :func:`_solve_helix_numpy` (same operations), written at index k; the tangents
+    a = t0, b = t1 normalised by :func:`_unit_s`."""
+    n0, n1, n2 = b0 - a0, b1 - a1, b2 - a2
+    D = np.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
+    nrm = _max_s(D, _TINY)
+    n0, n1, n2 = n0 / nrm, n1 / nrm, n2 / nrm
+    d = 0.5 * D
+    cl = np.sqrt(c0 * c0 + c1 * c1 + c2 * c2)
+    nrm = _max_s(cl, _TINY)
+    h0, h1, h2 = c0 / nrm, c1 / nrm, c2 / nrm
+    m0, m1, m2 = a0 + b0, a1 + b1, a2 + b2
+    mlen = np.sqrt(m0 * m0 + m1 * m1 + m2 * m2)
+    nrm = _max_s(mlen, _TINY)
+    along = h0 * (m0 / nrm) + h1 * (m1 / nrm) + h2 * (m2 / nrm) >= 1.0 - 5e-13
+    iterations[k] = 0
+    if d < STRAIGHT_D and along:
+        # the minimal rotation (least twist): a planar arc of winding 2 asin(d), chord l sin(h)/h
+        x0, x1, x2 = a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0
+        nrm = _max_s(np.sqrt(x0 * x0 + x1 * x1 + x2 * x2), _TINY)
+        h = np.arcsin(min(d, 1.0))
+        w = 2.0 * h
+        phi[k, 0], phi[k, 1], phi[k, 2] = w * (x0 / nrm), w * (x1 / nrm), w * (x2 / nrm)
+        length[k] = cl / sinc_s(h / np.pi)
+        kind[k] = 1
+        return
+    if d < FLAT_D:
+        cos_a = h0 * a0 + h1 * a1 + h2 * a2
+        if cos_a > 1e-12:
+            w = 2.0 * np.pi
+            phi[k, 0], phi[k, 1], phi[k, 2] = w * h0, w * h1, w * h2
+            length[k] = cl / cos_a
+            kind[k] = 2
+        else:
+            phi[k, 0], phi[k, 1], phi[k, 2] = 0.0, 0.0, 0.0
+            length[k] = cl
+            kind[k] = 3
+        return
+    # general case
+    cn = c0 * n0 + c1 * n1 + c2 * n2
+    p0, p1, p2 = c0 - cn * n0, c1 - cn * n1, c2 - cn * n2          # chord projected on Pi
+    if mlen < ANTIPODAL_M:
+        nrm = _max_s(np.sqrt(p0 * p0 + p1 * p1 + p2 * p2), _TINY)
+        e0, e1, e2 = p0 / nrm, p1 / nrm, p2 / nrm
+    else:
+        e0, e1, e2 = m0 / nrm, m1 / nrm, m2 / nrm
+    # b2 = e, b1 = b2 x n
+    f0, f1, f2 = e1 * n2 - e2 * n1, e2 * n0 - e0 * n2, e0 * n1 - e1 * n0
+    hm0, hm1, hm2 = 0.5 * m0, 0.5 * m1, 0.5 * m2
+    mb1 = hm0 * f0 + hm1 * f1 + hm2 * f2
+    mb2 = hm0 * e0 + hm1 * e1 + hm2 * e2
+    gamma = np.arctan2(p0 * e0 + p1 * e1 + p2 * e2, p0 * f0 + p1 * f1 + p2 * f2)
+    if gated:
+        angle = budget / _max_s(np.sqrt(p0 * p0 + p1 * p1 + p2 * p2), _TINY)
+        F0, _ = _F_cs(1.0, 0.0, 0.0, d, mb1, mb2, gamma)          # cos(0), sin(0) exactly
+        gamma = gamma + (F0 if np.abs(F0) <= angle else 0.0)
+    lo, hi = gamma - np.pi, gamma
+    M2 = _max_s(1.0 - d * d, 0.0)
+    x = np.arctan2(3.0 * M2 * (gamma - 0.5 * np.pi), d * d)
+    if not (x > lo and x < hi):
+        x = gamma - 0.5 * np.pi
+    its = 0
+    for _ in range(max_iter):
+        F, dF = _F_s(x, d, mb1, mb2, gamma)
+        if F < 0.0:
+            lo = x
+        else:
+            hi = x
+        step = F / _max_s(dF, _TINY)
+        xn = x - step
+        tol = 2e-16 * (1.0 + np.abs(x))
+        done = (np.abs(step) <= tol) or (hi - lo <= 2.0 * tol)
+        if not ((xn > lo and xn < hi) or done):
+            xn = 0.5 * (lo + hi)
+        x = xn
+        its += 1
+        if done:
+            break
+    cx, sx = np.cos(x), np.sin(x)
+    u0, u1, u2 = cx * f0 + sx * e0, cx * f1 + sx * e1, cx * f2 + sx * e2     # the axis a
+    v0, v1, v2 = n1 * u2 - n2 * u1, n2 * u0 - n0 * u2, n0 * u1 - n1 * u0     # e = n x a
+    ma = hm0 * u0 + hm1 * u1 + hm2 * u2
+    me = hm0 * v0 + hm1 * v1 + hm2 * v2
+    h = np.arctan2(d, me)
+    w = 2.0 * h
+    phi[k, 0], phi[k, 1], phi[k, 2] = w * u0, w * u1, w * u2
+    length[k] = np.sqrt(p0 * p0 + p1 * p1 + p2 * p2) / np.sqrt(ma * ma + (d / h) ** 2)
+    iterations[k] = its
+    kind[k] = 0
+
+
+@njit(cache=True, error_model="numpy")
+def _solve_flat(t0, t1, chord, budget, gated, max_iter, phi, length, iterations, kind):
+    """:func:`solve_helix` on flat (E, 3) arrays."""
+    for k in range(t0.shape[0]):
+        a0, a1, a2 = _unit_s(t0[k, 0], t0[k, 1], t0[k, 2])
+        b0, b1, b2 = _unit_s(t1[k, 0], t1[k, 1], t1[k, 2])
+        _solve_one(a0, a1, a2, b0, b1, b2, chord[k, 0], chord[k, 1], chord[k, 2], budget[k], gated, max_iter,
+                   k, phi, length, iterations, kind)
+
+
+@njit(cache=True, error_model="numpy")
+def _chain_kernel(P, T, n_elements, tol, max_iter, phi, length, iterations, kind):
+    """:func:`solve_chain`: per strand, element after element from the node reached."""
+    k = 0
+    for s in range(P.shape[0]):
+        C0, C1, C2 = P[s, 0, 0], P[s, 0, 1], P[s, 0, 2]
+        b0, b1, b2 = _unit_s(T[s, 0, 0], T[s, 0, 1], T[s, 0, 2])
+        for i in range(n_elements[s]):
+            a0, a1, a2 = b0, b1, b2                                  # t_i normalised once
+            b0, b1, b2 = _unit_s(T[s, i + 1, 0], T[s, i + 1, 1], T[s, i + 1, 2])
+            _solve_one(a0, a1, a2, b0, b1, b2, P[s, i + 1, 0] - C0, P[s, i + 1, 1] - C1, P[s, i + 1, 2] - C2,
+                       tol[s], True, max_iter, k, phi, length, iterations, kind)
+            # C += l (t + f2 Phi x t + f3 Phi x (Phi x t)), as helix_chord
+            x0, x1, x2 = phi[k, 0], phi[k, 1], phi[k, 2]
+            t0, t1, t2 = T[s, i, 0], T[s, i, 1], T[s, i, 2]
+            _, f2, f3 = f123_s(x0 * x0 + x1 * x1 + x2 * x2)
+            q0, q1, q2 = x1 * t2 - x2 * t1, x2 * t0 - x0 * t2, x0 * t1 - x1 * t0
+            r0, r1, r2 = x1 * q2 - x2 * q1, x2 * q0 - x0 * q2, x0 * q1 - x1 * q0
+            l = length[k]
+            C0 += l * (t0 + f2 * q0 + f3 * r0)
+            C1 += l * (t1 + f2 * q1 + f3 * r1)
+            C2 += l * (t2 + f2 * q2 + f3 * r2)
+            k += 1

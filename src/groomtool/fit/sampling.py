@@ -15,6 +15,7 @@ error on a smooth curve sampled at spacing h.  Strands of 2 or 3 vertices get ex
 from __future__ import annotations
 
 import numpy as np
+from numba import njit
 
 from .kernels import dot
 
@@ -24,19 +25,37 @@ def drop_repeated_vertices(points, offsets, relative: float = 1e-6, absolute: fl
 
     The root is always kept.  Returns (points, offsets, kept), ``kept`` the kept input vertex ids.
     """
+    points = np.ascontiguousarray(points, dtype=np.float64)
+    offsets = np.ascontiguousarray(offsets, dtype=np.int64)
+    keep = np.ones(len(points), dtype=bool)
+    if len(points) > 1:
+        _, lengths = vertex_arc_lengths(points, offsets)
+        _keep_kernel(points, offsets, lengths, float(relative), float(absolute), keep)
+    return _kept(points, offsets, keep)
+
+
+def _kept(points, offsets, keep):
+    """(points, offsets, kept ids) keeping the vertices marked in ``keep`` and every root."""
+    keep[offsets[:-1][offsets[:-1] < len(points)]] = True
+    if keep.all():
+        return points.copy(), offsets.copy(), np.arange(len(points))
+    kept = np.nonzero(keep)[0]
+    csum = np.concatenate([[0], np.cumsum(keep)])
+    return points[kept], csum[offsets].astype(np.int64), kept
+
+
+def _drop_repeated_vertices_numpy(points, offsets, relative: float = 1e-6, absolute: float = 1e-12):
+    """Reference for :func:`drop_repeated_vertices` (numpy)."""
     points = np.asarray(points, dtype=np.float64)
     offsets = np.asarray(offsets, dtype=np.int64)
     V = len(points)
     keep = np.ones(V, dtype=bool)
     if V > 1:
-        _, lengths = vertex_arc_lengths(points, offsets)
+        _, lengths = _vertex_arc_lengths_numpy(points, offsets)
         strand = np.repeat(np.arange(len(offsets) - 1), np.diff(offsets))
         seg = np.linalg.norm(np.diff(points, axis=0), axis=1)
         keep[1:] = seg >= np.maximum(absolute, relative * lengths[strand[1:]])
-    keep[offsets[:-1][offsets[:-1] < V]] = True
-    kept = np.nonzero(keep)[0]
-    csum = np.concatenate([[0], np.cumsum(keep)])
-    return points[kept], csum[offsets].astype(np.int64), kept
+    return _kept(points, offsets, keep)
 
 
 def ensure_four_vertices(points, offsets):
@@ -58,6 +77,15 @@ def ensure_four_vertices(points, offsets):
 
 def vertex_arc_lengths(points, offsets) -> tuple[np.ndarray, np.ndarray]:
     """Arc length of every vertex from its root (V,), and strand lengths (S,)."""
+    points = np.ascontiguousarray(points, dtype=np.float64)
+    offsets = np.ascontiguousarray(offsets, dtype=np.int64)
+    s, lengths = np.empty(len(points)), np.zeros(len(offsets) - 1)
+    _arc_kernel(points, offsets, s, lengths)
+    return s, lengths
+
+
+def _vertex_arc_lengths_numpy(points, offsets) -> tuple[np.ndarray, np.ndarray]:
+    """Reference for :func:`vertex_arc_lengths` (numpy)."""
     counts = np.diff(offsets)
     d = np.zeros(len(points))
     if len(points) > 1:
@@ -95,6 +123,15 @@ class PolylineCurves:
 
     def evaluate(self, strand, s):
         """Points (P, 3) and unit tangents (P, 3) of the local cubic at arc lengths s on strands."""
+        strand = np.ascontiguousarray(strand, dtype=np.int64).ravel()
+        s = np.ascontiguousarray(s, dtype=np.float64).ravel()
+        pts, tan = np.empty((len(s), 3)), np.empty((len(s), 3))
+        _evaluate_kernel(self.points, self.arc, self._key, self._base, self._u, self.offsets, self.lengths,
+                         strand, s, pts, tan)
+        return pts, tan
+
+    def _evaluate_numpy(self, strand, s):
+        """Reference for :meth:`evaluate`, vectorised over samples (numpy)."""
         strand = np.asarray(strand, dtype=np.int64)
         s = np.clip(np.asarray(s, dtype=np.float64), 0.0, self.lengths[strand])
         first = self.offsets[strand]
@@ -115,3 +152,77 @@ class PolylineCurves:
         tan = q1 + a0 * (q2 + a1 * d3)
         tan /= np.sqrt(dot(tan, tan))[:, None]
         return pts, tan
+
+
+@njit(cache=True, error_model="numpy")
+def _evaluate_kernel(points, arc, key, base, u, offsets, lengths, strand, s, pts, tan):
+    """:meth:`PolylineCurves.evaluate`, one sample at a time (the same operations, the segment found
+    by bisection in the strand's part of the key instead of np.searchsorted over all of it)."""
+    for k in range(len(s)):
+        st = strand[k]
+        first, n = offsets[st], offsets[st + 1] - offsets[st]
+        sk = s[k]
+        if sk == sk:                                     # np.clip(s, 0, L)
+            sk = sk if sk > 0.0 else 0.0
+            sk = sk if sk < lengths[st] else lengths[st]
+        q = sk + base[st]
+        lo, hi = first, first + n                        # the last v with key[v] <= q
+        while lo < hi:
+            mid = (lo + hi) // 2
+            if key[mid] <= q:
+                lo = mid + 1
+            else:
+                hi = mid
+        seg = min(max(lo - 1 - first, 0), n - 2)
+        w = first + min(max(seg - 1, 0), n - 4)
+        x0, x1, x2, x3 = arc[w], arc[w + 1], arc[w + 2], arc[w + 3]
+        a0, a1, a2 = sk - x0, sk - x1, sk - x2
+        for c in range(3):
+            d2 = (u[w + 1, c] - u[w, c]) / (x2 - x0)
+            d3 = ((u[w + 2, c] - u[w + 1, c]) / (x3 - x1) - d2) / (x3 - x0)
+            q2 = d2 + a2 * d3
+            q1 = u[w, c] + a1 * q2
+            pts[k, c] = points[w, c] + a0 * q1
+            tan[k, c] = q1 + a0 * (q2 + a1 * d3)
+        nrm = np.sqrt(tan[k, 0] * tan[k, 0] + tan[k, 1] * tan[k, 1] + tan[k, 2] * tan[k, 2])
+        for c in range(3):
+            tan[k, c] /= nrm
+
+
+@njit(cache=True, error_model="numpy")
+def _arc_kernel(points, offsets, s, lengths):
+    """:func:`vertex_arc_lengths`: segment lengths (0 at roots) summed over the whole groom, minus the
+    sum at the strand's root (as the reference's global cumsum)."""
+    V = points.shape[0]
+    root = np.zeros(V, dtype=np.bool_)
+    for k in range(len(offsets) - 1):
+        if offsets[k + 1] > offsets[k]:
+            root[offsets[k]] = True
+    acc = 0.0
+    for i in range(V):
+        d = 0.0
+        if i > 0 and not root[i]:
+            d0, d1, d2 = (points[i, 0] - points[i - 1, 0], points[i, 1] - points[i - 1, 1],
+                          points[i, 2] - points[i - 1, 2])
+            d = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+        acc = d if i == 0 else acc + d
+        s[i] = acc
+    for k in range(len(offsets) - 1):
+        a, b = offsets[k], offsets[k + 1]
+        if b > a:
+            c0 = s[a]
+            for i in range(a, b):
+                s[i] = s[i] - c0
+            lengths[k] = s[b - 1]
+
+
+@njit(cache=True, error_model="numpy")
+def _keep_kernel(points, offsets, lengths, relative, absolute, keep):
+    """keep[i] = |p_i - p_{i-1}| >= max(absolute, relative L) inside each strand (roots set by the caller)."""
+    for k in range(len(offsets) - 1):
+        lim = relative * lengths[k]
+        lim = lim if (lim >= absolute or lim != lim) else absolute
+        for i in range(max(offsets[k], 1), offsets[k + 1]):
+            d0, d1, d2 = (points[i, 0] - points[i - 1, 0], points[i, 1] - points[i - 1, 1],
+                          points[i, 2] - points[i - 1, 2])
+            keep[i] = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2) >= lim
