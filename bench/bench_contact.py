@@ -1,10 +1,15 @@
 """Benchmark of contact detection (strand/strand + strand/head) on the real grooms, one core.
 
-    /work/venv/bin/python bench/bench_contact.py [--data ../shared/data] [--quick]
+    /work/venv/bin/python bench/bench_contact.py [--data ../shared/data] [--quick] [--rows LABEL,...]
 
 Prints tables and writes bench/results/contact.md and contact.json.  Every detection row runs in
 its own process (NUMBA_NUM_THREADS=1) so that its peak memory is its own; times are wall clock and
-process CPU time (the two differ when the machine is shared).
+process CPU time (the two differ when the machine is shared).  ``--rows`` re-runs only the rows
+with those labels (``row_label``, e.g. ``harolongo_fitted@50um-head``) and merges them into the
+existing contact.json (the other rows, the head query comparison and the distance study are kept).
+The ``-head`` rows time the strand/head pass alone, ``detect_head_contacts`` against the previous
+implementation ``_detect_head_contacts_reference`` (alternating, 3 times each, a fresh HeadSurface
+each time, built outside the timing), and check that both return the same contacts bit for bit.
 """
 
 from __future__ import annotations
@@ -71,10 +76,32 @@ def fitted_samples(data: Path):
     return pts, offsets, arc
 
 
+def usc10k_samples(data: Path):
+    """usc10k (bench_fit.py: 10,000 strands grown from cstrands00003's guides on roots10k) fitted and
+    sampled as `groom invert --contacts all` does (points, offsets, arc)."""
+    from groomtool.fit import fit_groom
+    from groomtool.groom import Groom
+    from groomtool.invert import InversionParams
+    from groomtool.rods import superhelix as sh
+
+    guides = read_data(data / "usc" / "cstrands" / "cstrands00003.data")
+    roots = np.array([line.split()[1:4] for line in open(data / "usc" / "roots10k.obj") if line.startswith("v ")],
+                     dtype=np.float64)
+    guide_roots = np.array([g[0] for g in guides])
+    nearest = np.argmin(((roots[:, None] - guide_roots[None]) ** 2).sum(-1), axis=1)
+    groom = Groom.from_strands([guides[k] - guide_roots[k] + r for k, r in zip(nearest, roots)])
+    params = InversionParams(contacts="all")
+    helix = fit_groom(groom, tolerance=params.tolerance).helix
+    pts, offsets, _, arc = sh.sample(helix, params.samples_per_element)
+    return pts, offsets, arc
+
+
 def groups_for(spec: dict, data: Path):
     """[((points, offsets, arc), mesh)] for a row spec; USC gives one group per style."""
     if spec["dataset"] == "harolongo_fitted":
         return [(fitted_samples(data), load_mesh(data / HAROLONGO[1], HAROLONGO[2]))]
+    if spec["dataset"] == "usc10k_fitted":
+        return [(usc10k_samples(data), load_mesh(data / USC_HEAD))]
     return [(ragged(strands), mesh) for strands, mesh in _polyline_groups(spec, data)]
 
 
@@ -122,6 +149,52 @@ def run_row(spec: dict, data: Path) -> dict:
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     return {**spec, **totals, "head_contacts_inside": n_inside, "wall_s": wall, "cpu_s": cpu,
             "peak_rss_mb": peak, "rss_before_mb": base, "groups": len(prepared)}
+
+
+def run_head_row(spec: dict, data: Path, repeats: int = 3) -> dict:
+    """The strand/head pass alone: bounded (``detect_head_contacts``) vs every vertex queried
+    (``_detect_head_contacts_reference``), CPU seconds of each repetition, and whether they agree."""
+    from groomtool.contact import HeadSurface, detect_head_contacts
+    from groomtool.contact.head import _detect_head_contacts_reference
+
+    prepared = groups_for(spec, data)
+    meshes = {id(mesh): mesh for _, mesh in prepared}
+    (pts, off, arc), mesh = prepared[0]
+    k = off[min(3, len(off) - 1)]
+    for fn in (detect_head_contacts, _detect_head_contacts_reference):  # loads the numba cache
+        fn(pts[:k], off[:4], arc[:k], HeadSurface(mesh), spec["radius"])
+    fields = ("strand_a", "s_a", "strand_b", "s_b", "point_a", "point_b", "normal", "frame", "distance")
+    cpu: dict = {"bounded": [], "reference": []}
+    results: dict = {}
+    totals: dict = {}
+    for _ in range(repeats):
+        for name, fn in (("reference", _detect_head_contacts_reference), ("bounded", detect_head_contacts)):
+            surfaces = {key: HeadSurface(m) for key, m in meshes.items()}  # fresh: lazy set-up is timed
+            out, stats_all = [], {}
+            cpu0 = time.process_time()
+            for (p, o, a), m in prepared:
+                stats: dict = {}
+                out.append(fn(p, o, a, surfaces[id(m)], spec["radius"], stats=stats))
+                for key, v in stats.items():
+                    stats_all[key] = stats_all.get(key, 0) + v
+            cpu[name].append(time.process_time() - cpu0)
+            results[name] = out
+            totals[name] = stats_all
+    identical = all(np.array_equal(getattr(x, f), getattr(y, f), equal_nan=True)
+                    for x, y in zip(results["bounded"], results["reference"]) for f in fields)
+    new = totals["bounded"]
+    inside = sum(int(np.sum(c.distance < 0)) for c in results["bounded"])
+    return {**spec, **new, "strands": sum(len(o) - 1 for (_, o, _), _ in prepared),
+            "head_contacts_inside": inside, "identical": bool(identical), "groups": len(prepared),
+            "cpu_s_bounded": cpu["bounded"], "cpu_s_reference": cpu["reference"],
+            "reference_head_vertices_queried": totals["reference"]["head_vertices_queried"],
+            "reference_time_head_vertices": totals["reference"]["time_head_vertices"],
+            "reference_time_head_refine": totals["reference"]["time_head_refine"]}
+
+
+def row_label(spec: dict) -> str:
+    name = spec["dataset"] + (f"-{spec['subset']}" if spec.get("subset") else "") + f"@{spec['radius'] * 1e6:g}um"
+    return name + ("-head" if spec.get("head_only") else "")
 
 
 def run_in_child(spec: dict, data: Path) -> dict:
@@ -209,6 +282,27 @@ STAGES = [("time_head_prepare", "head prep"), ("time_strand_pairs", "s/s pairs")
           ("time_strand_frames", "s/s frames"), ("time_head_vertices", "head verts"), ("time_head_refine", "head refine")]
 
 
+def head_table(rows: list[dict]) -> str:
+    head = ["data", "strands", "r_c (um)", "vertices in box", "exact queries", "bounded", "late", "inside",
+            "candidates", "s/h contacts (inside)", "identical", "head verts s", "head refine s",
+            "cpu s bounded", "cpu s reference", "speedup"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for r in rows:
+        name = r["dataset"] if r["dataset"] != "usc" else f"usc cstrands ({r['groups']} styles)"
+        new, ref = min(r["cpu_s_bounded"]), min(r["cpu_s_reference"])
+        cells = [name, f"{r['strands']:,}", f"{r['radius'] * 1e6:g}", f"{r['head_vertices_in_box']:,}",
+                 f"{r['head_vertices_queried']:,}", f"{r['head_vertices_bounded']:,}", f"{r['head_vertices_late']:,}",
+                 f"{r['head_vertices_inside']:,}", f"{r['head_candidates']:,}",
+                 f"{r['head_contacts']:,} ({r['head_contacts_inside']:,})", "yes" if r["identical"] else "**NO**",
+                 f"{r['time_head_vertices']:.2f} ({r['reference_time_head_vertices']:.2f})",
+                 f"{r['time_head_refine']:.2f} ({r['reference_time_head_refine']:.2f})",
+                 " / ".join(f"{x:.2f}" for x in r["cpu_s_bounded"]),
+                 " / ".join(f"{x:.2f}" for x in r["cpu_s_reference"]),
+                 f"{ref / new:.1f}x"]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
 def table(rows: list[dict]) -> str:
     head = ["data", "strands", "segments", "r_c (um)", "group pairs", "candidates", "close pairs", "s/s contacts",
             "s/h contacts (inside)"] + [s for _, s in STAGES] + ["total wall s", "total cpu s", "peak MB (+run)"]
@@ -232,10 +326,12 @@ def main() -> None:
     ap.add_argument("--data", type=Path, default=DEFAULT_DATA)
     ap.add_argument("--out", type=Path, default=REPO / "bench" / "results")
     ap.add_argument("--quick", action="store_true", help="default radius only, no distance study")
+    ap.add_argument("--rows", help="re-run only these row labels (comma-separated) and merge them into contact.json")
     ap.add_argument("--row", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.row:
-        print(json.dumps(run_row(json.loads(args.row), args.data)))
+        spec = json.loads(args.row)
+        print(json.dumps(run_head_row(spec, args.data) if spec.get("head_only") else run_row(spec, args.data)))
         return
     if not (args.data / HAROLONGO[0]).is_file():
         sys.exit(f"real data not found under {args.data}")
@@ -247,15 +343,40 @@ def main() -> None:
     specs += [{"dataset": "harolongo", "radius": DEFAULT_CONTACT_RADIUS, "subset": n} for n in (1000, 2000, 4000)]
     specs += [{"dataset": "harolongo_fitted", "radius": DEFAULT_CONTACT_RADIUS}]
     specs += [{"dataset": "usc", "radius": r} for r in ([DEFAULT_CONTACT_RADIUS] if args.quick else [DEFAULT_CONTACT_RADIUS, 1e-3])]
+    specs += [{"dataset": d, "radius": DEFAULT_CONTACT_RADIUS, "head_only": True}
+              for d in ("harolongo_fitted", "usc10k_fitted", "usc")]
+    previous = None
+    if args.rows:
+        wanted = set(args.rows.split(","))
+        unknown = wanted - {row_label(sp) for sp in specs}
+        if unknown:
+            sys.exit(f"unknown row labels {sorted(unknown)}; known: {[row_label(sp) for sp in specs]}")
+        previous = json.loads((args.out / "contact.json").read_text())
+        old_rows = {row_label(r): r for r in previous["rows"]}
+        specs = [sp for sp in specs if row_label(sp) in wanted or row_label(sp) in old_rows]
     rows = []
     for spec in specs:
+        if previous is not None and row_label(spec) not in wanted:
+            rows.append(old_rows[row_label(spec)])
+            continue
         rows.append(run_in_child(spec, args.data))
         r = rows[-1]
+        if spec.get("head_only"):
+            print(f"{row_label(spec):28s} head only: s/h {r['head_contacts']:>6,}  identical {r['identical']}  "
+                  f"cpu bounded {min(r['cpu_s_bounded']):6.2f} s  reference {min(r['cpu_s_reference']):6.2f} s",
+                  flush=True)
+            continue
         print(f"{r['dataset']:9s} {r.get('subset') or r['strands']:>6} r_c={r['radius'] * 1e6:5.0f} um  "
               f"s/s {r['strand_contacts']:>8,}  s/h {r['head_contacts']:>6,}  wall {r['wall_s']:6.2f} s  "
               f"cpu {r['cpu_s']:6.2f} s  peak {r['peak_rss_mb']:.0f} MB", flush=True)
-    comparison = head_query_comparison(args.data)
-    study = None if args.quick else distance_study(args.data)
+    if previous is not None:
+        comparison, study = previous["head_query"], previous["distance_study"]
+        for s in (study or {}).values():  # JSON made the percentile keys strings
+            pcts = s["nearest_other_strand_um_percentiles"]
+            s["nearest_other_strand_um_percentiles"] = {int(k): v for k, v in pcts.items()}
+    else:
+        comparison = head_query_comparison(args.data)
+        study = None if args.quick else distance_study(args.data)
     env = {"python": platform.python_version(), "numpy": np.__version__,
            "numba": __import__("numba").__version__, "trimesh": __import__("trimesh").__version__,
            "cpu": platform.processor() or platform.machine(), "cpus": os.cpu_count(),
@@ -271,13 +392,24 @@ def main() -> None:
           "(shared machine: wall > cpu means other work competed for the cores).", "",
           "harolongo: 7,905 strands x 21 vertices (cm -> m) with its head mesh (21,510 faces); harolongo_fitted: "
           "the same strands as `groom invert --contacts all` samples them (fitted Super-Helices, 8 points per "
-          "element, 2.7 M segments; roots not snapped); "
+          "element, 2.7 M segments; roots not snapped); usc10k_fitted: 10,000 strands grown from cstrands00003's "
+          "guides on usc/roots10k.obj (as in bench_fit.py), sampled the same way (3.0 M points); "
           "usc: 343 five-strand styles, each run separately against the USC head (13,832 faces), totals.", "",
-          table(rows), "",
+          table([r for r in rows if not r.get("head_only")]), "",
           "group pairs: pairs of segment groups (runs of consecutive segments of a strand) whose boxes (inflated "
           "by r_c) overlap; candidates: segment pairs given the exact test (boxes overlap, lines closer than 2 r_c); "
           "close pairs: segment pairs closer than 2 r_c; "
           "contacts: one per local minimum after merging. s/h inside: head contacts with the axis inside the mesh.", "",
+          "## Strand/head pass alone: bounded vs every vertex queried", "",
+          "`detect_head_contacts` (distance bounds along each strand, docs/contact.md) against the previous "
+          "implementation `_detect_head_contacts_reference` (every vertex in the inflated box queried), alternating, "
+          "each with a fresh HeadSurface built outside the timing (so the bounded pass pays its own mesh checks). "
+          "cpu s: process CPU seconds of each of the 3 repetitions; speedup: best reference / best bounded. "
+          "head verts / head refine: wall seconds of the last run, bounded (reference). exact queries: vertices whose "
+          "signed distance was computed (the reference computes all vertices in box); bounded: left with a lower "
+          "bound; late: bounds the minima pass replaced by exact values; identical: every field of the contacts equal "
+          "bit for bit.", "",
+          head_table([r for r in rows if r.get("head_only")]), "",
           "## Head distance query: own BVH vs trimesh", "",
           f"{comparison['points']:,} harolongo vertices inside the head's box: own {comparison['own_us_per_point']:.2f} us/point "
           f"(BVH build {comparison['own_build_s'] * 1e3:.0f} ms incl. pseudo-normals), trimesh.proximity.closest_point "
@@ -300,7 +432,8 @@ def main() -> None:
                    + ", ".join(f"{x} mm: {100 * f:.0f} %" for x, f in s["strands_within_head_mm"].items()), ""]
     (args.out / "contact.md").write_text("\n".join(md) + "\n")
     print()
-    print(table(rows))
+    print(table([r for r in rows if not r.get("head_only")]))
+    print(head_table([r for r in rows if r.get("head_only")]))
     print(json.dumps(comparison, indent=1))
     if study:
         print(json.dumps(study, indent=1))

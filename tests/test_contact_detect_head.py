@@ -3,9 +3,13 @@
 import numpy as np
 import pytest
 import trimesh
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from groomtool.contact import (DEFAULT_CONTACT_RADIUS, HEAD, HeadSurface, detect_contacts, detect_head_contacts,
                                root_gaps, snap_roots)
+from groomtool.contact import head as head_mod
+from groomtool.contact.detect import strand_segments
 from groomtool.groom import Groom
 from groomtool.io import read_data
 
@@ -222,3 +226,274 @@ def test_real_groom_subset(shared_data):
     v = HeadSurface(mesh).query(pts[:2000])[0]
     _, d_tm, _ = trimesh.proximity.closest_point(mesh, pts[:2000])
     assert np.all(np.abs(v) <= d_tm + 1e-12)
+
+
+# ------------------------------------------------------- bounded detection == reference, bit for bit
+# ``detect_head_contacts`` queries only the vertices whose distance bounds cannot rule them out;
+# ``_detect_head_contacts_reference`` (the previous implementation) queries every vertex in the box.
+
+FIELDS = ("strand_a", "s_a", "strand_b", "s_b", "point_a", "point_b", "normal", "frame", "distance")
+
+
+def assert_same_contacts(pts, off, arc, surface, radius, **kw):
+    """Both implementations, every field bit for bit, and the shared counters; returns the new stats."""
+    new_stats, ref_stats = {}, {}
+    new = detect_head_contacts(pts, off, arc, surface, radius, stats=new_stats, **kw)
+    ref = head_mod._detect_head_contacts_reference(pts, off, arc, surface, radius, stats=ref_stats, **kw)
+    for name in FIELDS:
+        a, b = np.asarray(getattr(new, name)), np.asarray(getattr(ref, name))
+        assert a.shape == b.shape, name
+        assert np.array_equal(a, b, equal_nan=True), name
+    assert new.radius == ref.radius
+    for key in ("head_vertices_inside", "head_candidates", "head_minima", "head_contacts"):
+        assert new_stats[key] == ref_stats[key], key
+    assert new_stats["head_vertices_in_box"] == ref_stats["head_vertices_queried"]
+    assert new_stats["head_vertices_queried"] + new_stats["head_vertices_bounded"] == new_stats["head_vertices_in_box"]
+    return new_stats
+
+
+def assert_bounds_hold(pts, off, surface, radius):
+    """The vertex pass: exact values equal the reference's per-vertex distances bit for bit, and
+    every bounded vertex's reference distance is at least its bound.  Returns the bounded count."""
+    max_seg = head_mod._max_segment(pts, off)
+    ref = head_mod.vertex_signed_distances(pts, off, surface, radius + max_seg)
+    lo, hi = surface.bounds
+    in_box = head_mod._in_box_kernel(pts, lo - (radius + max_seg), hi + (radius + max_seg))
+    ok, guard = surface._sign_info()
+    val, exact, _, n_bounded = head_mod._strand_bounds_kernel(
+        pts, off, in_box, surface._bvh, surface._triangle_boxes(), radius, max_seg, ok, guard,
+        1e-12 * (1.0 + float(np.max(np.abs(surface.bounds)))))
+    np.testing.assert_array_equal(np.isfinite(ref), in_box)
+    assert np.array_equal(val[exact], ref[exact])
+    assert np.all(ref[~exact] >= val[~exact]) and np.all(val[~exact] > radius)
+    return n_bounded
+
+
+def _curve(a, b, n, sag=0.0, normal=(0.0, 0.0, 1.0)):
+    t = np.linspace(0.0, 1.0, n)[:, None]
+    return (1 - t) * np.asarray(a, float) + t * np.asarray(b, float) + sag * 4 * t * (1 - t) * np.asarray(normal)
+
+
+def sphere_strands(rc, rng):
+    """Strands around the sphere of radius R at the origin: dipping, grazing, crossing, far, rooted
+    on the surface, with repeated vertices, leaving and re-entering the box, single vertices."""
+    out = []
+    for depth in (-3e-3, -2 * rc, -0.3 * rc, 0.0, 0.4 * rc, 0.99 * rc, 1.01 * rc, 3 * rc, 2e-2):
+        z = R + depth  # a chord whose closest approach to the centre is at z, dense and coarse
+        for n in (7, 40, 400):
+            out.append(_curve([-0.06, 0.01, z], [0.07, -0.01, z], n))
+    out.append(_curve([-0.2, 0.0, 0.0], [0.2, 0.003, 0.001], 120))  # through the whole head
+    out.append(_curve([0.0, -0.3, 0.2], [0.01, 0.3, 0.2], 50))  # far, long
+    out.append(_curve([0.3, 0.3, 0.3], [0.4, 0.3, 0.3], 5))  # outside the box
+    d = rng.normal(size=3)
+    d /= np.linalg.norm(d)
+    root = R * d  # rooted on the surface, going out, coming back to graze far along
+    side = np.cross(d, [0.0, 0.0, 1.0])
+    side /= np.linalg.norm(side)
+    ang = np.linspace(0.0, 1.2, 300)
+    lift = 0.004 * np.sin(np.pi * ang / 1.2) ** 2 + 0.5 * rc * ang / 1.2
+    out.append((R + lift)[:, None] * (np.cos(ang)[:, None] * d + np.sin(ang)[:, None] * side))
+    out[-1][0] = root
+    rep = _curve([-0.05, 0.0, R + 0.5 * rc], [0.05, 0.0, R + 0.5 * rc], 21)
+    out.append(np.repeat(rep, [1, 2, 1, 3] + [1] * 13 + [2, 1, 1, 4], axis=0))  # zero-length segments
+    out.append(np.tile([[0.0, 0.0, R + 0.2 * rc]], (5, 1)))  # one point, five times
+    out.append(np.array([[0.0, 0.0, R - 1e-3]]))  # a single vertex
+    out.append(_curve([-0.12, 0.0, 0.05], [0.12, 0.0, 0.05], 30, sag=0.2, normal=(0, 0, 1.0)))  # leaves the box
+    for _ in range(12):  # random walks near the surface
+        p = rng.normal(size=3)
+        p *= (R + rng.uniform(-2e-3, 4e-3)) / np.linalg.norm(p)
+        steps = rng.normal(size=(rng.integers(2, 200), 3)) * rng.choice([rc, 1e-3, 5e-3])
+        out.append(p + np.cumsum(steps, axis=0))
+    return out
+
+
+@pytest.mark.parametrize("rc", [RC, DEFAULT_CONTACT_RADIUS, 2e-3])
+def test_bounded_equals_reference_on_a_sphere(sphere_surface, rc):
+    pts, off, arc = ragged(sphere_strands(rc, np.random.default_rng(11)))
+    stats = assert_same_contacts(pts, off, arc, sphere_surface, rc)
+    assert stats["head_contacts"] > 10 and stats["head_vertices_bounded"] > 0
+    assert assert_bounds_hold(pts, off, sphere_surface, rc) > 0
+    assert_same_contacts(pts, off, arc, sphere_surface, rc, min_root_arc=0.0, merge_arc=0.0)
+    assert_same_contacts(pts, off, arc, sphere_surface, rc, min_root_arc=0.02, merge_arc=0.01)
+
+
+def test_bounded_equals_reference_on_a_box_with_exact_ties():
+    """Axis-aligned faces: points equidistant from several faces, closest points on shared edges."""
+    surface = HeadSurface(trimesh.creation.box((0.1, 0.2, 0.05)))
+    rng = np.random.default_rng(12)
+    strands = [_curve([-0.08, y, z], [0.08, y, z], n) for y in (0.0, 0.1 - 3e-5, 0.12)
+               for z in (0.025 + 3e-5, 0.025, 0.0125, 0.0, 0.03) for n in (9, 161)]
+    strands += [_curve([-0.05, -0.1, 0.025], [0.05, 0.1, 0.025 + 4e-5], 99),  # along the top face
+                _curve([0.05 + 2e-5, -0.12, 0.0], [0.05 + 2e-5, 0.12, 0.03], 77)]  # grazes an edge
+    strands += [p + np.cumsum(rng.normal(size=(100, 3)) * 2e-3, axis=0) for p in rng.uniform(-0.05, 0.05, (15, 3))]
+    pts, off, arc = ragged(strands)
+    stats = assert_same_contacts(pts, off, arc, surface, RC)
+    assert stats["head_contacts"] > 10 and stats["head_vertices_inside"] > 0
+    assert assert_bounds_hold(pts, off, surface, RC) > 0
+
+
+def test_open_mesh_is_guarded_at_its_hole():
+    """A bowl open at the bottom: a strand rising from far below through the opening into the dome
+    never crosses the surface, yet its sign flips (outside, rim closest -> inside, dome closest).
+    The guard box around the hole keeps the bounds off that path; without it they would be wrong."""
+    src = trimesh.creation.icosphere(4, radius=R)
+    bowl = trimesh.Trimesh(src.vertices, src.faces[src.triangles_center[:, 2] > -0.3 * R], process=False)
+    surface = HeadSurface(bowl)
+    ok, guard = surface._sign_info()
+    assert ok and len(guard) == 1
+    strands = [_curve([x, 0.01, -0.6], [x, 0.0, 0.5 * R], 400) for x in (0.0, 0.03, 0.06)]
+    strands += [_curve([0.0, 0.0, -0.6], [0.0, 0.0, R + 2e-3], 300, sag=0.02, normal=(1, 0, 0))]
+    strands += [_curve([-0.15, 0.0, 0.05], [0.15, 0.0, 0.05], 300)]  # in and out through the dome's wall
+    pts, off, arc = ragged(strands)
+    stats = assert_same_contacts(pts, off, arc, surface, RC)
+    assert stats["head_vertices_inside"] > 0 and stats["head_vertices_bounded"] > 0
+    assert_bounds_hold(pts, off, surface, RC)
+    # without the guard the sign carried up from below is wrong inside the dome
+    unguarded = HeadSurface(bowl)
+    unguarded._sign_cache = (True, np.zeros((0, 15)))
+    wrong = detect_head_contacts(pts, off, arc, unguarded, RC)
+    right = head_mod._detect_head_contacts_reference(pts, off, arc, surface, RC)
+    assert len(wrong) < len(right)
+
+
+def test_meshes_whose_sign_cannot_be_carried():
+    """Two components (a sphere inside a sphere), an inconsistently oriented face, an edge in three
+    faces, two sheets pinched at a vertex: the bounds are not used (every vertex queried), the result
+    is unchanged."""
+    outer = trimesh.creation.icosphere(3, radius=R)
+    inner = trimesh.creation.icosphere(2, radius=0.3 * R)
+    nested = trimesh.util.concatenate([outer, inner])
+    flipped = outer.faces.copy()
+    flipped[0] = flipped[0, ::-1]
+    fin = np.vstack([outer.faces, [[outer.faces[0, 0], outer.faces[0, 1], len(outer.vertices)]]])
+    fin_vertices = np.vstack([outer.vertices, [[0.0, 0.0, 2 * R]]])
+    top, bottom = np.argmax(outer.vertices[:, 2]), np.argmin(outer.vertices[:, 2])
+    pinched_vertices = outer.vertices.copy()
+    pinched_vertices[bottom] = pinched_vertices[top] = [0.0, 0.0, 0.0]  # the poles meet at the centre
+    rng = np.random.default_rng(13)
+    strands = [p + np.cumsum(rng.normal(size=(150, 3)) * 2e-3, axis=0)
+               for p in rng.normal(size=(20, 3)) * 0.4 * R]
+    strands += [_curve([-0.2, 0.0, 0.0], [0.2, 0.0, 0.001], 200),
+                _curve([0.0, -0.2, 0.3 * R + 3e-5], [0.0, 0.2, 0.3 * R], 300)]
+    pts, off, arc = ragged(strands)
+    for mesh in (nested, (outer.vertices, flipped), (fin_vertices, fin), (pinched_vertices, outer.faces)):
+        surface = HeadSurface(mesh)
+        assert surface._sign_info()[0] is False
+        stats = assert_same_contacts(pts, off, arc, surface, RC)
+        assert stats["head_vertices_bounded"] == 0
+    assert HeadSurface(outer)._sign_info()[0] is True and len(HeadSurface(outer)._sign_info()[1]) == 0
+
+
+def test_empty_and_degenerate_inputs(sphere_surface):
+    for strands in ([np.zeros((1, 3))], [np.tile([[0.0, 0.0, R]], (3, 1))]):
+        pts, off, arc = ragged(strands)
+        assert_same_contacts(pts, off, arc, sphere_surface, RC)
+    off = np.array([0, 0, 3, 3, 5])  # empty strands between real ones
+    pts = np.array([[0, 0, R + 1e-2], [0, 0, R - 1e-3], [0, 0.001, R + 1e-2], [0, 0, R - 1e-3], [0, 0.01, R - 1e-3]])
+    arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pts[0:3], axis=0), axis=1)),
+                          [0.0, np.linalg.norm(pts[4] - pts[3])]])
+    assert_same_contacts(pts.astype(float), off, arc, sphere_surface, RC)
+
+
+def test_fast_helpers_match_the_reference_arithmetic():
+    rng = np.random.default_rng(14)
+    lo = rng.uniform(-1, 1, (50, 3))
+    box = np.ascontiguousarray(np.hstack([lo, lo + rng.uniform(0, 0.5, (50, 3))]))
+    pts = np.vstack([rng.uniform(-1.5, 1.5, (200, 3)), box[:, :3], box[:, 3:]])  # on the faces too
+    for i in range(len(box)):
+        for p in pts:
+            assert head_mod._box_gap2(box, i, *p) == head_mod._box_dist2(box, i, *p)
+    pts, off, arc = ragged([rng.normal(size=(n, 3)) for n in (1, 2, 30, 5)])
+    seg_v0, _ = strand_segments(off)
+    assert head_mod._max_segment(pts, off) == np.max(np.linalg.norm(pts[seg_v0 + 1] - pts[seg_v0], axis=1))
+
+
+@settings(max_examples=30, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(seed=st.integers(0, 10**6), n_strands=st.integers(1, 12), rc=st.sampled_from([2e-5, RC, 1e-3]),
+       step=st.sampled_from([3e-5, 5e-4, 3e-3, 2e-2]), shape=st.sampled_from(["sphere", "box", "bowl"]))
+def test_bounded_equals_reference_property(seed, n_strands, rc, step, shape, sphere_surface):
+    surface = {"sphere": sphere_surface, "box": _BOX, "bowl": _BOWL}[shape]
+    rng = np.random.default_rng(seed)
+    strands = []
+    for _ in range(n_strands):
+        p = rng.normal(size=3)
+        p *= R * rng.uniform(0.8, 1.3) / np.linalg.norm(p)
+        drift = rng.normal(size=3) * step
+        strands.append(p + np.cumsum(drift + rng.normal(size=(rng.integers(1, 120), 3)) * step, axis=0))
+    pts, off, arc = ragged(strands)
+    assert_same_contacts(pts, off, arc, surface, rc)
+    assert_bounds_hold(pts, off, surface, rc)
+
+
+_BOX = HeadSurface(trimesh.creation.box((0.15, 0.2, 0.1)))
+_BOWL_SRC = trimesh.creation.icosphere(3, radius=R)
+_BOWL = HeadSurface(trimesh.Trimesh(_BOWL_SRC.vertices, _BOWL_SRC.faces[_BOWL_SRC.triangles_center[:, 1] < 0.5 * R],
+                                    process=False))
+
+
+def _densify(strands, k):
+    """k points per original segment (linear), like sampling a fitted curve densely."""
+    out = []
+    for s in strands:
+        t = np.linspace(0.0, 1.0, k, endpoint=False)
+        dense = (s[:-1, None, :] * (1 - t)[None, :, None] + s[1:, None, :] * t[None, :, None]).reshape(-1, 3)
+        out.append(np.vstack([dense, s[-1:]]))
+    return out
+
+
+def test_bounded_equals_reference_on_real_grooms(shared_data):
+    """A few hundred harolongo strands (8 points per original segment, as dense as the inversion
+    samples them) against its open head, and USC styles against the closed USC head."""
+    strands = list(read_data(shared_data / "digital-salon" / "harolongo.data", scale=0.01).strands())[::25]
+    mesh = trimesh.load(shared_data / "digital-salon" / "Retopologised_Female_Head_01_mod.obj", process=False)
+    mesh.apply_scale(0.01)
+    surface = HeadSurface(mesh)
+    ok, guard = surface._sign_info()
+    assert ok and len(guard) == 2  # the neck and a second hole
+    pts, off, arc = ragged(_densify(strands, 8))
+    stats = assert_same_contacts(pts, off, arc, surface, DEFAULT_CONTACT_RADIUS)
+    assert stats["head_contacts"] > 100 and stats["head_vertices_bounded"] > 0.2 * stats["head_vertices_in_box"]
+    assert_bounds_hold(pts, off, surface, DEFAULT_CONTACT_RADIUS)
+
+    usc = HeadSurface(trimesh.load(shared_data / "usc" / "head_model.obj", process=False))
+    assert usc._sign_info()[0] and len(usc._sign_info()[1]) == 0  # closed
+    files = sorted((shared_data / "usc" / "cstrands").glob("*.data"))[::40]
+    strands = [s for f in files for s in read_data(f).strands()]
+    pts, off, arc = ragged(strands)
+    for rc in (DEFAULT_CONTACT_RADIUS, 1e-3):
+        stats = assert_same_contacts(pts, off, arc, usc, rc)
+        assert stats["head_contacts"] > 0 and stats["head_vertices_bounded"] > 0.3 * stats["head_vertices_in_box"]
+    assert_bounds_hold(pts, off, usc, DEFAULT_CONTACT_RADIUS)
+
+
+def test_search_among_candidates_equals_tree_search():
+    """``_signed_among`` (any order of the faces, exact ties resolved by sign) gives the tree
+    search's value bit for bit, also at points equidistant from several faces of a box, and
+    ``_segment_candidates`` holds the closest face of every point of a segment within reach."""
+    rng = np.random.default_rng(15)
+    for mesh in (trimesh.creation.box((0.1, 0.2, 0.05)), trimesh.creation.icosphere(2, radius=R)):
+        surface = HeadSurface(mesh)
+        bvh, tri_box = surface._bvh, surface._triangle_boxes()
+        n_face = len(bvh[3])
+        pts = np.vstack([rng.uniform(-0.12, 0.12, (300, 3)), np.zeros((1, 3)),
+                         np.column_stack([rng.uniform(-0.1, 0.1, (50, 2)), np.zeros(50)]),  # symmetry planes
+                         np.column_stack([np.zeros(50), rng.uniform(-0.1, 0.1, (50, 2))]),
+                         rng.integers(-2, 3, (100, 3)) * 0.0125])
+        for order in (np.arange(n_face), rng.permutation(n_face), np.arange(n_face)[::-1]):
+            order = np.ascontiguousarray(order, dtype=np.int64)
+            for p in pts:
+                ref = head_mod._signed_point(p[0], p[1], p[2], bvh, np.inf)[0]
+                assert head_mod._signed_among(p[0], p[1], p[2], bvh, tri_box, np.inf, order, n_face) == ref
+        for _ in range(100):
+            a = rng.uniform(-0.12, 0.12, 3)
+            b = a + rng.normal(size=3) * rng.choice([1e-4, 1e-3, 3e-2])
+            da, db = (head_mod._signed_point(*q, bvh, np.inf)[0] for q in (a, b))
+            length = np.linalg.norm(b - a)
+            cand, n = head_mod._segment_candidates(a, b, 0.5 * (abs(da) + abs(db) + length), bvh[0], bvh[1],
+                                                   bvh[2], tri_box, np.empty(4, np.int64))
+            for x in np.linspace(0.0, 1.0, 23):
+                q = a + x * (b - a)
+                face = head_mod._signed_point(*q, bvh, np.inf)[7]
+                assert face in cand[:n]
+                assert head_mod._signed_among(*q, bvh, tri_box, min(abs(da) + x * length, abs(db) + (1 - x) * length),
+                                              cand, n) == head_mod._signed_point(*q, bvh, np.inf)[0]

@@ -11,12 +11,20 @@ point whose closest feature lies on a hole's rim counts as outside.  The contact
 direction from c to the point, flipped for inside points, so it always points out of the head; it
 falls back to the pseudo-normal when the point is on the surface.
 
-Strand/head contacts (``detect_head_contacts``): the signed distance is evaluated at every vertex
-inside the head's box (inflated by r_c plus the longest segment); each discrete local minimum of it
-along a strand that could dip below r_c (1-Lipschitz bound over its two segments) is refined by a
+Strand/head contacts (``detect_head_contacts``): the signed distance of the vertices inside the
+head's box (inflated by r_c plus the longest segment); each discrete local minimum of it along a
+strand that could dip below r_c (1-Lipschitz bound over its two segments) is refined by a
 golden-section search on those two segments, and kept when the refined distance is below r_c.
 Minima closer than ``merge_arc`` along the strand are merged.  The first ``min_root_arc`` of a
 strand (default pi r_c) is its attachment to the scalp, not a contact.
+
+Only the vertices that matter are queried: along a strand, the last exact query (unsigned distance
+u) bounds the next vertices' distance by u -/+ the arc since it (1-Lipschitz), and a vertex whose
+lower bound already rules it out as a candidate keeps the bound, when its sign is known to be
+outside (``_sign_propagation``: a consistently oriented, one-component manifold mesh, the path
+away from the surface and from the holes' guard boxes).  The minima pass replaces a bound by the
+exact distance wherever a decision needs it, so the result is that of
+``_detect_head_contacts_reference`` (every vertex queried) bit for bit; the tests compare them.
 """
 
 from __future__ import annotations
@@ -25,6 +33,8 @@ import time
 
 import numba as nb
 import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import connected_components
 
 from .detect import HEAD, Contacts, check_strands, merge_close, strand_segments
 from .frames import contact_frames
@@ -99,6 +109,68 @@ def _build_bvh(tri_lo, tri_hi, centroid, leaf_size):
     return np.ascontiguousarray(boxes), child, span, order
 
 
+def _sign_propagation(vertices: np.ndarray, faces: np.ndarray):
+    """Whether the sign of the distance may be carried along a strand, and the guard boxes of the holes.
+
+    The pseudo-normal sign is the side of the surface (Baerentzen and Aanaes) when the mesh is an
+    embedded, consistently oriented 2-manifold: then a path that stays away from the surface keeps its
+    sign.  Checked here: every edge in at most two faces, used once in each direction (consistent
+    orientation), every vertex's faces one fan (no sheets pinched at a vertex), and one component
+    (faces joined by edges; no eyeballs or teeth inside the head).
+    Self-intersections are not checked (assumed absent).  On an open mesh a point whose closest
+    feature is on a hole's rim counts as outside whatever its side, and a point can see the inner
+    side of the surface through the hole; both need the point to be at least as close to the hole's
+    rim loop (hence to any cap of the hole inside the loop's convex hull) as to the surface, so each
+    rim loop gets a guard: an oriented box (PCA axes) holding the loop's vertices.
+
+    Returns (ok, guard): guard (G, 15) rows of box centre (3), axes (3 rows of 3) and half extents (3).
+    """
+    none = np.zeros((0, 15))
+    n_vert, n_face = len(vertices), len(faces)
+    a, b = faces.ravel(), faces[:, [1, 2, 0]].ravel()  # directed edges (0, 1), (1, 2), (2, 0) per face
+    directed = a * n_vert + b
+    if np.unique(directed).size != directed.size:  # two faces use an edge in the same direction
+        return False, none
+    keys, inverse, count = np.unique(np.minimum(a, b) * n_vert + np.maximum(a, b), return_inverse=True,
+                                     return_counts=True)
+    if count.max() > 2:  # an edge shared by three faces or more
+        return False, none
+    face = np.repeat(np.arange(n_face), 3)
+    order = np.argsort(inverse.ravel(), kind="stable")
+    shared = inverse.ravel()[order][1:] == inverse.ravel()[order][:-1]
+    s1, s2 = order[:-1][shared], order[1:][shared]  # the two slots (3 f + k: edge k of face f) of an edge
+    f1, f2 = face[s1], face[s2]
+    adjacency = sp.coo_matrix((np.ones(len(f1)), (f1, f2)), shape=(n_face, n_face))
+    if connected_components(adjacency, directed=False)[0] != 1:
+        return False, none
+    # every vertex's faces form one fan (no two sheets pinched at a vertex): join the corners
+    # (3 f + k: corner k of face f) of a vertex across each edge its faces share; one group per vertex
+    other = (np.arange(3 * n_face) // 3) * 3 + (np.arange(3 * n_face) % 3 + 1) % 3  # the edge's 2nd corner
+    s1_end, s2_end = other[s1], other[s2]  # edge slot k joins corners k and k+1; opposite directions
+    corners = sp.coo_matrix((np.ones(2 * len(s1)), (np.concatenate([s1, s1_end]), np.concatenate([s2_end, s2]))),
+                            shape=(3 * n_face, 3 * n_face))
+    if connected_components(corners, directed=False)[0] != np.unique(faces).size:
+        return False, none
+    rim = keys[count == 1]
+    if len(rim) == 0:
+        return True, none
+    ra, rb = rim // n_vert, rim % n_vert
+    _, loop = connected_components(sp.coo_matrix((np.ones(len(rim)), (ra, rb)), shape=(n_vert, n_vert)),
+                                   directed=False)
+    rim_vertices = np.unique(np.concatenate([ra, rb]))
+    scale = 1.0 + float(np.max(np.abs(vertices)))
+    rows = []
+    for lab in np.unique(loop[rim_vertices]):
+        pts = vertices[rim_vertices[loop[rim_vertices] == lab]]
+        centre = pts.mean(axis=0)
+        axes = np.linalg.eigh(np.cov((pts - centre).T))[1] if len(pts) >= 3 else np.eye(3)
+        local = (pts - centre) @ axes
+        lo, hi = local.min(axis=0), local.max(axis=0)
+        half = 0.5 * (hi - lo) + 1e-9 * (float(np.max(hi - lo)) + scale)  # holds the loop despite rounding
+        rows.append(np.concatenate([centre + axes @ (0.5 * (lo + hi)), axes.T.ravel(), half]))
+    return True, np.ascontiguousarray(rows, dtype=np.float64)
+
+
 class HeadSurface:
     """A head mesh prepared for signed-distance queries (build once, query many times).
 
@@ -135,6 +207,21 @@ class HeadSurface:
         tris = tris[order]
         self._bvh = (boxes, child, span, np.ascontiguousarray(tris.reshape(-1, 9)),
                      np.ascontiguousarray(normals[order]), np.ascontiguousarray(rim[order]))
+
+    def _triangle_boxes(self) -> np.ndarray:
+        """(F, 6) box (lo, hi) of every triangle in BVH order, computed on first use."""
+        boxes = getattr(self, "_tri_box_cache", None)
+        if boxes is None:
+            tri = self._bvh[3].reshape(-1, 3, 3)
+            boxes = self._tri_box_cache = np.ascontiguousarray(np.hstack([tri.min(axis=1), tri.max(axis=1)]))
+        return boxes
+
+    def _sign_info(self):
+        """(ok, guard) of ``_sign_propagation``, computed on first use."""
+        info = getattr(self, "_sign_cache", None)
+        if info is None:
+            info = self._sign_cache = _sign_propagation(self.vertices, self.faces)
+        return info
 
     @property
     def bounds(self) -> np.ndarray:
@@ -431,14 +518,448 @@ def vertex_signed_distances(points, offsets, head: HeadSurface, margin: float) -
     return _strand_distances_kernel(points, offsets, in_box, head._bvh)
 
 
+# ------------------------------------------------------------------ bounded head contacts (fast path)
+@nb.njit(cache=True)
+def _box_gap2(box, i, px, py, pz):
+    """``_box_dist2`` without branches (the same value)."""
+    gx = max(box[i, 0] - px, px - box[i, 3], 0.0)
+    gy = max(box[i, 1] - py, py - box[i, 4], 0.0)
+    gz = max(box[i, 2] - pz, pz - box[i, 5], 0.0)
+    return gx * gx + gy * gy + gz * gz
+
+
+@nb.njit(cache=True)
+def _nearest_fast(px, py, pz, box, child, span, tri, tri_box, best):
+    """``_nearest`` with a triangle's own box tested before its closest point (skipped when clearly
+    farther than the best so far, so no triangle that ``_nearest`` would take is skipped): the same
+    traversal order, the same triangles accepted, the same result."""
+    stack = np.empty(64, np.int64)
+    stack_d = np.empty(64)
+    stack[0] = 0
+    stack_d[0] = 0.0
+    sp = 1
+    bx = by = bz = 0.0
+    bf = -1
+    bfeat = 0
+    while sp > 0:
+        sp -= 1
+        if stack_d[sp] >= best:
+            continue
+        node = stack[sp]
+        left = child[node, 0]
+        if left < 0:
+            for f in range(span[node, 0], span[node, 1]):
+                if _box_gap2(tri_box, f, px, py, pz) > best * (1.0 + 1e-9) + 1e-20:
+                    continue
+                cx, cy, cz, feat = _closest_on_triangle(px, py, pz, tri, f)
+                d2 = (px - cx) * (px - cx) + (py - cy) * (py - cy) + (pz - cz) * (pz - cz)
+                if d2 < best:
+                    best, bx, by, bz, bf, bfeat = d2, cx, cy, cz, f, feat
+            continue
+        right = child[node, 1]
+        dl = _box_gap2(box, left, px, py, pz)
+        dr = _box_gap2(box, right, px, py, pz)
+        if dl > dr:
+            left, right, dl, dr = right, left, dr, dl
+        if dr < best:
+            stack[sp] = right
+            stack_d[sp] = dr
+            sp += 1
+        if dl < best:
+            stack[sp] = left
+            stack_d[sp] = dl
+            sp += 1
+    return best, bx, by, bz, bf, bfeat
+
+
+@nb.njit(cache=True)
+def _face_sign(px, py, pz, cx, cy, cz, f, feat, normals, rim):
+    """``_signed_point``'s sign for p whose closest point is c, on feature ``feat`` of face slot f."""
+    if not rim[f, feat] and ((px - cx) * normals[f, feat, 0] + (py - cy) * normals[f, feat, 1]
+                             + (pz - cz) * normals[f, feat, 2]) < 0.0:
+        return -1.0
+    return 1.0
+
+
+@nb.njit(cache=True)
+def _signed_fast(px, py, pz, bvh, tri_box, bound):
+    """The signed distance of ``_signed_point`` (``_nearest_fast`` instead of ``_nearest``).  Its
+    result does not depend on ``bound`` (an upper bound of the distance, or inf): a triangle holding
+    the minimum is never pruned (its boxes are no farther than it), so the search ends with the
+    same triangle, the first in the tree's order that reaches the minimum."""
+    box, child, span, tri, normals, rim = bvh
+    best = np.inf if bound == np.inf else (bound * (1.0 + 1e-9) + 1e-300) ** 2
+    d2, bx, by, bz, bf, bfeat = _nearest_fast(px, py, pz, box, child, span, tri, tri_box, best)
+    if bf < 0:  # the bound was too tight (rounding): search again without it
+        d2, bx, by, bz, bf, bfeat = _nearest_fast(px, py, pz, box, child, span, tri, tri_box, np.inf)
+    return _face_sign(px, py, pz, bx, by, bz, bf, bfeat, normals, rim) * np.sqrt(d2)
+
+
+@nb.njit(cache=True)
+def _segment_candidates(p, q, reach, box, child, span, tri_box, out):
+    """Face slots whose box is within ``reach`` of the box of segment pq (written to ``out``, grown
+    as needed): every face that can be closest to a point x of the segment whose distance is at most
+    ``reach``.  Returns (out, count)."""
+    lo0, lo1, lo2 = min(p[0], q[0]), min(p[1], q[1]), min(p[2], q[2])
+    hi0, hi1, hi2 = max(p[0], q[0]), max(p[1], q[1]), max(p[2], q[2])
+    lim = reach * reach * (1.0 + 1e-9) + 1e-20
+    stack = np.empty(64, np.int64)
+    stack[0] = 0
+    sp = 1
+    n = 0
+    while sp > 0:
+        sp -= 1
+        node = stack[sp]
+        gx = max(box[node, 0] - hi0, lo0 - box[node, 3], 0.0)
+        gy = max(box[node, 1] - hi1, lo1 - box[node, 4], 0.0)
+        gz = max(box[node, 2] - hi2, lo2 - box[node, 5], 0.0)
+        if gx * gx + gy * gy + gz * gz > lim:
+            continue
+        if child[node, 0] >= 0:
+            stack[sp] = child[node, 0]
+            stack[sp + 1] = child[node, 1]
+            sp += 2
+            continue
+        for f in range(span[node, 0], span[node, 1]):
+            gx = max(tri_box[f, 0] - hi0, lo0 - tri_box[f, 3], 0.0)
+            gy = max(tri_box[f, 1] - hi1, lo1 - tri_box[f, 4], 0.0)
+            gz = max(tri_box[f, 2] - hi2, lo2 - tri_box[f, 5], 0.0)
+            if gx * gx + gy * gy + gz * gz > lim:
+                continue
+            if n == out.shape[0]:
+                out = np.concatenate((out, np.empty(n, np.int64)))
+            out[n] = f
+            n += 1
+    return out, n
+
+
+@nb.njit(cache=True)
+def _signed_among(px, py, pz, bvh, tri_box, bound, cand, n_cand):
+    """``_signed_point``'s signed distance when the closest face is among ``cand[:n_cand]`` (it is
+    when every face within ``bound`` of p is there): the smallest squared distance is the same
+    whatever the order the faces are tried in; the search keeps the first face reaching it, which
+    only matters for the sign when several faces tie exactly, so then (if their signs differ) the
+    point is queried again with ``_signed_fast``, in the tree's order."""
+    box, child, span, tri, normals, rim = bvh
+    best = np.inf if bound == np.inf else (bound * (1.0 + 1e-9) + 1e-300) ** 2
+    bx = by = bz = 0.0
+    bf = -1
+    bfeat = 0
+    conflict = False
+    for i in range(n_cand):
+        f = cand[i]
+        if _box_gap2(tri_box, f, px, py, pz) > best * (1.0 + 1e-9) + 1e-20:
+            continue
+        cx, cy, cz, feat = _closest_on_triangle(px, py, pz, tri, f)
+        d2 = (px - cx) * (px - cx) + (py - cy) * (py - cy) + (pz - cz) * (pz - cz)
+        if d2 < best:
+            best, bx, by, bz, bf, bfeat = d2, cx, cy, cz, f, feat
+            conflict = False
+        elif d2 == best and bf >= 0 and not conflict:
+            conflict = (_face_sign(px, py, pz, cx, cy, cz, f, feat, normals, rim)
+                        != _face_sign(px, py, pz, bx, by, bz, bf, bfeat, normals, rim))
+    if bf < 0 or conflict:
+        return _signed_fast(px, py, pz, bvh, tri_box, bound)
+    return _face_sign(px, py, pz, bx, by, bz, bf, bfeat, normals, rim) * np.sqrt(best)
+
+
+@nb.njit(cache=True)
+def _golden_cand(p, q, dp, dq, t_lo, bvh, tri_box, tol, cand):
+    """``_golden_on_segment`` with every evaluation searched among the faces near the segment
+    (``_segment_candidates``, reach: the largest distance bound of the evaluations): the same
+    evaluations, values and result.  Returns (t, distance, cand)."""
+    box, child, span, tri, normals, rim = bvh
+    length = np.sqrt((q[0] - p[0]) ** 2 + (q[1] - p[1]) ** 2 + (q[2] - p[2]) ** 2)
+    reach = 0.5 * (abs(dp) + abs(dq) + length)  # >= min(|dp| + x l, |dq| + (1 - x) l) for every x
+    cand, n = _segment_candidates(p, q, reach, box, child, span, tri_box, cand)
+    lo, hi = t_lo, 1.0
+    x1 = hi - _GOLDEN * (hi - lo)
+    x2 = lo + _GOLDEN * (hi - lo)
+    f1 = _signed_among(p[0] + x1 * (q[0] - p[0]), p[1] + x1 * (q[1] - p[1]), p[2] + x1 * (q[2] - p[2]), bvh,
+                       tri_box, min(abs(dp) + x1 * length, abs(dq) + (1.0 - x1) * length), cand, n)
+    f2 = _signed_among(p[0] + x2 * (q[0] - p[0]), p[1] + x2 * (q[1] - p[1]), p[2] + x2 * (q[2] - p[2]), bvh,
+                       tri_box, min(abs(dp) + x2 * length, abs(dq) + (1.0 - x2) * length), cand, n)
+    while hi - lo > tol:
+        if f1 <= f2:
+            hi, x2, f2 = x2, x1, f1
+            x1 = hi - _GOLDEN * (hi - lo)
+            f1 = _signed_among(p[0] + x1 * (q[0] - p[0]), p[1] + x1 * (q[1] - p[1]), p[2] + x1 * (q[2] - p[2]),
+                               bvh, tri_box, min(abs(dp) + x1 * length, abs(dq) + (1.0 - x1) * length), cand, n)
+        else:
+            lo, x1, f1 = x1, x2, f2
+            x2 = lo + _GOLDEN * (hi - lo)
+            f2 = _signed_among(p[0] + x2 * (q[0] - p[0]), p[1] + x2 * (q[1] - p[1]), p[2] + x2 * (q[2] - p[2]),
+                               bvh, tri_box, min(abs(dp) + x2 * length, abs(dq) + (1.0 - x2) * length), cand, n)
+    if f1 <= f2:
+        return x1, f1, cand
+    return x2, f2, cand
+
+
+@nb.njit(cache=True)
+def _seg_len(points, i, j):
+    """|points[j] - points[i]| (the same rounding as the side bounds of ``_head_minima_kernel``)."""
+    return np.sqrt((points[j, 0] - points[i, 0]) ** 2 + (points[j, 1] - points[i, 1]) ** 2
+                   + (points[j, 2] - points[i, 2]) ** 2)
+
+
+@nb.njit(cache=True)
+def _guard_dist2(px, py, pz, guard):
+    """Squared distance from p to the nearest guard box (rows of ``_sign_propagation``); inf if none."""
+    best = np.inf
+    for g in range(guard.shape[0]):
+        dx, dy, dz = px - guard[g, 0], py - guard[g, 1], pz - guard[g, 2]
+        s = 0.0
+        for a in range(3):
+            t = abs(guard[g, 3 + 3 * a] * dx + guard[g, 4 + 3 * a] * dy + guard[g, 5 + 3 * a] * dz) - guard[g, 12 + a]
+            if t > 0.0:
+                s += t * t
+        best = min(best, s)
+    return best
+
+
+@nb.njit(cache=True)
+def _never_refined(q, radius, s_prev, s_next, has_prev, has_next):
+    """True when a vertex whose signed distance is at least ``q`` is no candidate of
+    ``_head_minima_kernel`` whatever its neighbours: a candidate is a discrete local minimum (no
+    neighbour below it) with min(d, side bounds) < radius, and its side bound 0.5 (d + d_neighbour -
+    seg) is then at least 0.5 (q + q - seg), in floating point too (rounding is monotone).  The same
+    expressions as there, so the test is exact, not approximately so."""
+    if not q >= radius:
+        return False
+    if has_prev and not 0.5 * (q + q - s_prev) >= radius:
+        return False
+    if has_next and not 0.5 * (q + q - s_next) >= radius:
+        return False
+    return True
+
+
+@nb.njit(cache=True)
+def _in_box_kernel(points, lo, hi):
+    """``vertex_signed_distances``' box test (lo, hi: the inflated box corners)."""
+    out = np.empty(points.shape[0], np.bool_)
+    for k in range(points.shape[0]):
+        out[k] = (points[k, 0] >= lo[0] and points[k, 1] >= lo[1] and points[k, 2] >= lo[2]
+                  and points[k, 0] <= hi[0] and points[k, 1] <= hi[1] and points[k, 2] <= hi[2])
+    return out
+
+
+@nb.njit(cache=True)
+def _strand_bounds_kernel(points, offsets, in_box, bvh, tri_box, radius, max_seg, propagate, guard, tol_abs):
+    """Signed distance of the vertices in the box, or a lower bound of it where that already shows
+    the vertex is no candidate (``_never_refined``); +inf outside the box.
+
+    Along a strand the last exact query (the anchor: unsigned distance u, arc ``run`` since it)
+    gives u - run <= |distance| <= u + run (1-Lipschitz).  The upper bound prunes the next exact
+    query (as the previous vertex's distance plus the step did); the lower bound replaces the query
+    when the sign is known: the anchor is outside and the path since it stayed farther from every
+    hole's guard box than the upper bound (``_sign_propagation``).  Returns (value, exact flag,
+    exact queries, bounded vertices).
+    """
+    n = points.shape[0]
+    val = np.full(n, np.inf)
+    exact = np.ones(n, np.bool_)
+    n_exact = 0
+    n_bounded = 0
+    guarded = guard.shape[0] > 0
+    for st in range(offsets.shape[0] - 1):
+        v0, v1 = offsets[st], offsets[st + 1]
+        ua = -1.0  # the anchor's unsigned distance (< 0: no anchor yet)
+        run = 0.0  # arc length since the anchor
+        positive = False  # the anchor is outside and its sign holds up to here
+        step = 0.0
+        for k in range(v0, v1):
+            px, py, pz = points[k, 0], points[k, 1], points[k, 2]
+            if k > v0:
+                step = _seg_len(points, k - 1, k)
+                run += step
+            if positive and guarded:
+                reach = ua + run + 1e-9 * (ua + run) + tol_abs
+                if not _guard_dist2(px, py, pz, guard) > reach * reach:
+                    positive = False
+            if not in_box[k]:
+                continue
+            if positive:
+                lb = ua - run - 1e-9 * (ua + run) - tol_abs
+                if (lb >= radius and 0.5 * (lb + lb - max_seg) >= radius) or _never_refined(
+                        lb, radius, step, _seg_len(points, k, k + 1) if k + 1 < v1 else 0.0, k > v0, k + 1 < v1):
+                    val[k] = lb
+                    exact[k] = False
+                    n_bounded += 1
+                    continue
+            d = _signed_fast(px, py, pz, bvh, tri_box, np.inf if ua < 0.0 else ua + run)
+            val[k] = d
+            n_exact += 1
+            ua, run = abs(d), 0.0
+            positive = propagate and d > 0.0
+            if positive and guarded:
+                reach = ua + 1e-9 * ua + tol_abs
+                if not _guard_dist2(px, py, pz, guard) > reach * reach:
+                    positive = False
+    return val, exact, n_exact, n_bounded
+
+
+@nb.njit(cache=True)
+def _make_exact(points, k, val, exact, bvh, tri_box):
+    """Replace a lower bound by the signed distance; returns 1 if that took a query."""
+    if exact[k]:
+        return 0
+    val[k] = _signed_fast(points[k, 0], points[k, 1], points[k, 2], bvh, tri_box, np.inf)
+    exact[k] = True
+    return 1
+
+
+@nb.njit(cache=True)
+def _head_minima_bounded_kernel(points, arc, offsets, val, exact, bvh, tri_box, radius, min_root_arc, rel_tol,
+                                max_seg):
+    """``_head_minima_kernel`` on values that are exact or lower bounds (``_strand_bounds_kernel``):
+    a bound is replaced by the exact distance (in place) wherever a decision needs it, so the
+    candidates, the values used and the results are those of ``_head_minima_kernel`` on the exact
+    distances.  ``max_seg``: the longest segment (a quick first test).  Returns its four outputs and
+    the number of late exact queries."""
+    out_v = np.empty(1024, np.int64)
+    out_t = np.empty(1024)
+    out_d = np.empty(1024)
+    n_out = 0
+    n_refined = 0
+    n_late = 0
+    cand = np.empty(256, np.int64)  # candidate faces of a refined segment (``_golden_cand``)
+    for st in range(offsets.shape[0] - 1):
+        v_first, v_last = offsets[st], offsets[st + 1] - 1
+        if v_last <= v_first:  # a strand without segments has no contact
+            continue
+        for k in range(v_first, v_last + 1):
+            if arc[k] - arc[v_first] < min_root_arc:
+                continue
+            q = val[k]
+            if q >= radius and 0.5 * (q + q - max_seg) >= radius:  # every segment is at most max_seg
+                continue
+            s_prev = _seg_len(points, k, k - 1) if k > v_first else 0.0
+            s_next = _seg_len(points, k, k + 1) if k < v_last else 0.0
+            if _never_refined(q, radius, s_prev, s_next, k > v_first, k < v_last):
+                continue
+            n_late += _make_exact(points, k, val, exact, bvh, tri_box)
+            dk = val[k]
+            if k > v_first and val[k - 1] < dk:  # a bound below dk: decide on the exact value
+                n_late += _make_exact(points, k - 1, val, exact, bvh, tri_box)
+                if val[k - 1] < dk:
+                    continue
+            if k < v_last and val[k + 1] <= dk:
+                n_late += _make_exact(points, k + 1, val, exact, bvh, tri_box)
+                if val[k + 1] <= dk:
+                    continue
+            # the side bounds from the neighbours' values (bounds or exact): when they rule k out,
+            # so would the exact ones; otherwise take the exact values
+            side_lower = np.full(2, np.inf)
+            if k > v_first:
+                side_lower[0] = 0.5 * (dk + val[k - 1] - s_prev)
+            if k < v_last:
+                side_lower[1] = 0.5 * (dk + val[k + 1] - s_next)
+            if min(dk, side_lower[0], side_lower[1]) >= radius:
+                continue
+            if k > v_first and not exact[k - 1]:
+                n_late += _make_exact(points, k - 1, val, exact, bvh, tri_box)
+                side_lower[0] = 0.5 * (dk + val[k - 1] - s_prev)
+            if k < v_last and not exact[k + 1]:
+                n_late += _make_exact(points, k + 1, val, exact, bvh, tri_box)
+                side_lower[1] = 0.5 * (dk + val[k + 1] - s_next)
+            if min(dk, side_lower[0], side_lower[1]) >= radius:
+                continue
+            # from here on: _head_minima_kernel's refinement, on exact values
+            n_refined += 1
+            best_v, best_t, best_d = k, 0.0, dk
+            if k == v_last:  # express the vertex as the end of its segment
+                best_v, best_t = k - 1, 1.0
+            if k > v_first and side_lower[0] < radius:  # segment (k - 1, k), outside the attachment
+                a0, a1 = arc[k - 1] - arc[v_first], arc[k] - arc[v_first]
+                t_lo = 0.0
+                if a0 < min_root_arc:
+                    t_lo = (min_root_arc - a0) / (a1 - a0) if a1 > a0 else 1.0
+                t, d, cand = _golden_cand(points[k - 1], points[k], val[k - 1], dk, t_lo, bvh, tri_box, rel_tol, cand)
+                if d < best_d and t > t_lo + rel_tol:
+                    best_v, best_t, best_d = k - 1, t, d
+            if k < v_last and side_lower[1] < radius:  # segment (k, k + 1)
+                t, d, cand = _golden_cand(points[k], points[k + 1], dk, val[k + 1], 0.0, bvh, tri_box, rel_tol, cand)
+                if d < best_d:
+                    best_v, best_t, best_d = k, t, d
+            if best_d >= radius:
+                continue
+            if n_out == out_v.shape[0]:
+                out_v = np.concatenate((out_v, np.empty(n_out, np.int64)))
+                out_t = np.concatenate((out_t, np.empty(n_out)))
+                out_d = np.concatenate((out_d, np.empty(n_out)))
+            out_v[n_out], out_t[n_out], out_d[n_out] = best_v, best_t, best_d
+            n_out += 1
+    return out_v[:n_out], out_t[:n_out], out_d[:n_out], n_refined, n_late
+
+
+@nb.njit(cache=True)
+def _max_segment(points, offsets):
+    """Longest segment (the rounding of ``np.linalg.norm(..., axis=1)``); 0 if none."""
+    best = 0.0
+    for st in range(offsets.shape[0] - 1):
+        for k in range(offsets[st] + 1, offsets[st + 1]):
+            best = max(best, _seg_len(points, k - 1, k))
+    return best
+
+
 def detect_head_contacts(points, offsets, arc, head, radius: float, *, min_root_arc: float | None = None,
                          merge_arc: float | None = None, stats: dict | None = None) -> Contacts:
     """Strand/head contacts: local minima along each strand of the signed axis-to-surface distance
     that are below ``radius`` (negative: the axis is inside the head; such contacts are reported).
 
     ``head``: a trimesh.Trimesh, (vertices, faces) or a prepared ``HeadSurface``.  See the module
-    docstring for the rules; contacts are ordered by (strand_a, s_a).
+    docstring for the rules; contacts are ordered by (strand_a, s_a).  The result is that of
+    ``_detect_head_contacts_reference`` (every vertex queried); this one queries only the vertices
+    whose distance bounds cannot rule them out.
     """
+    points, offsets, arc = check_strands(points, offsets, arc)
+    if not radius > 0:
+        raise ValueError(f"contact radius must be positive, got {radius}")
+    t0 = time.perf_counter()
+    head = as_head_surface(head)
+    min_root_arc = np.pi * radius if min_root_arc is None else float(min_root_arc)
+    merge_arc = 4.0 * radius if merge_arc is None else float(merge_arc)
+    max_seg = float(_max_segment(points, offsets))
+    margin = radius + max_seg
+    lo, hi = head.bounds
+    in_box = _in_box_kernel(points, lo - margin, hi + margin)
+    propagate, guard = head._sign_info()
+    tri_box = head._triangle_boxes()
+    tol_abs = 1e-12 * (1.0 + float(np.max(np.abs(head.bounds))))
+    t1 = time.perf_counter()
+
+    val, exact, n_exact, n_bounded = _strand_bounds_kernel(points, offsets, in_box, head._bvh, tri_box, float(radius),
+                                                           max_seg, bool(propagate), guard, tol_abs)
+    t2 = time.perf_counter()
+    v, t, d, n_refined, n_late = _head_minima_bounded_kernel(points, arc, offsets, val, exact, head._bvh, tri_box,
+                                                             float(radius), min_root_arc, 1e-3, max_seg)
+    strand = np.searchsorted(offsets, v, side="right") - 1
+    s_a = arc[v] + t * (arc[v + 1] - arc[v])
+    kept = merge_close(strand, np.full(len(v), HEAD), s_a, np.zeros(len(v)), d, merge_arc)
+    t3 = time.perf_counter()
+
+    n_minima = len(v)
+    v, t, strand, s_a = v[kept], t[kept], strand[kept], s_a[kept]
+    direction = points[v + 1] - points[v]
+    point_a = points[v] + t[:, None] * direction
+    dist, closest, normal, _ = head.query(point_a)
+    frame = contact_frames(normal, direction) if len(v) else np.zeros((0, 3, 3))
+    if stats is not None:
+        stats.update(head_vertices_in_box=int(np.count_nonzero(in_box)), head_vertices_queried=int(n_exact + n_late),
+                     head_vertices_bounded=int(n_bounded - n_late), head_vertices_late=int(n_late),
+                     head_vertices_inside=int(np.count_nonzero(val < 0.0)),
+                     head_candidates=int(n_refined), head_minima=n_minima, head_contacts=len(kept),
+                     time_head_prepare=t1 - t0, time_head_vertices=t2 - t1, time_head_refine=t3 - t2,
+                     time_head_frames=time.perf_counter() - t3)
+    return Contacts(strand, s_a, np.full(len(v), HEAD), np.full(len(v), np.nan), point_a, closest, normal, frame,
+                    dist, radius)
+
+
+def _detect_head_contacts_reference(points, offsets, arc, head, radius: float, *,
+                                    min_root_arc: float | None = None, merge_arc: float | None = None,
+                                    stats: dict | None = None) -> Contacts:
+    """``detect_head_contacts`` as it was before the bounds (every vertex in the box queried):
+    the reference the tests compare it with, bit for bit."""
     points, offsets, arc = check_strands(points, offsets, arc)
     if not radius > 0:
         raise ValueError(f"contact radius must be positive, got {radius}")
