@@ -259,3 +259,32 @@ def test_failure_message_of_a_diverged_solve_has_no_tolerance_advice():
     assert "diverged" in msg and "--solver-tolerance" not in msg
     msg = _failure_message({"solver": "gs", "status": "max_iter", "residual": 2.3e-3, "iterations": 5000}, params)
     assert "--solver-tolerance 1e-02" in msg
+
+
+def test_check_stages_equal_their_original_implementations(draped):
+    """The equilibrium check, the isolated and the contact-held stiffness ratios against the original
+    dense routes, on strands touching the sphere and each other."""
+    from groomtool.invert import (
+        _contact_held_unstable_reference,
+        _equilibrium_residuals_reference,
+        contact_held_unstable,
+        equilibrium_residuals,
+    )
+    from groomtool.stability import _stiffness_ratios_reference, stiffness_ratios
+
+    _, res = draped
+    helix, g = res.helix, res.gravity
+    args = (helix, res.rest_curvatures, MAT, g, res.contacts, res.forces)
+    np.testing.assert_allclose(equilibrium_residuals(*args), _equilibrium_residuals_reference(*args),
+                               rtol=1e-10, atol=1e-14)
+    np.testing.assert_allclose(equilibrium_residuals(*args, chunk=1), _equilibrium_residuals_reference(*args),
+                               rtol=1e-10, atol=1e-14)
+    iso = stiffness_ratios(helix, MAT.stiffness_diag, MAT.linear_density, g)
+    np.testing.assert_allclose(iso, _stiffness_ratios_reference(helix, MAT.stiffness_diag, MAT.linear_density, g,
+                                                                chunk=1), rtol=1e-10)
+    H = contact_jacobian(helix, res.contacts)
+    every = np.arange(helix.n_strands)
+    held = contact_held_unstable(helix, MAT, g, res.contacts, res.forces, H, every)
+    ref = _contact_held_unstable_reference(helix, MAT, g, res.contacts, res.forces, H, every)
+    np.testing.assert_allclose(held, ref, rtol=1e-10, atol=1e-12)  # some are 0 up to round-off
+    assert np.any(held < iso - 1e-6 * np.abs(iso))  # some strand is held by its contacts

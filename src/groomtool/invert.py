@@ -103,16 +103,64 @@ def rest_curvature_guess(helix: sh.SuperHelix, guess: str) -> np.ndarray:
 
 
 def equilibrium_residuals(helix: sh.SuperHelix, rest_curvatures, material: Material, gravity,
-                          contacts=None, forces=None) -> np.ndarray:
+                          contacts=None, forces=None, chunk: int = 1024) -> np.ndarray:
     """||K (q - q0) - F - H^T r|| / ||F|| per strand, recomputed from scratch (fresh kinematics,
-    H^T r point by point), independent of how q0 was obtained."""
+    H^T r point by point), independent of how q0 was obtained.  In chunks of strands of similar
+    length, each chunk's kinematics serving both F and H^T r."""
+    from .contact.jacobian import _point_forces_generalized
+
+    S = helix.n_strands
+    F = np.zeros(helix.curvatures.shape)
+    HtR = None
+    if contacts is not None and forces is not None and len(forces):
+        # the point forces: F_i^T r_i at s_a on strand a, its opposite at s_b on strand b
+        frames = np.asarray(contacts.frame, dtype=np.float64).reshape(-1, 3, 3)
+        world = np.einsum("pji,pj->pi", frames, np.asarray(forces, dtype=np.float64).reshape(-1, 3))
+        strand = np.concatenate([np.asarray(contacts.strand_a, dtype=np.int64),
+                                 np.asarray(contacts.strand_b, dtype=np.int64)])
+        arc = np.concatenate([np.asarray(contacts.s_a, dtype=np.float64),
+                              np.asarray(contacts.s_b, dtype=np.float64)])
+        keep = strand >= 0
+        strand, arc, point_force = strand[keep], arc[keep], np.concatenate([world, -world])[keep]
+        HtR = np.zeros(helix.curvatures.shape)
+    order = np.argsort(helix.n_elements, kind="stable")
+    which_chunk = np.empty(S, dtype=np.int64)
+    local = np.empty(S, dtype=np.int64)
+    for c, start in enumerate(range(0, S, chunk)):
+        which_chunk[order[start:start + chunk]] = c
+        local[order[start:start + chunk]] = np.arange(len(order[start:start + chunk]))
+    if HtR is not None:
+        by_chunk = np.argsort(which_chunk[strand], kind="stable")
+        bounds = np.searchsorted(which_chunk[strand][by_chunk], np.arange((S + chunk - 1) // chunk + 1))
+    for c, start in enumerate(range(0, S, chunk)):
+        ids = order[start:start + chunk]
+        sub = helix.subset(ids)
+        kin = sh.kinematics(sub)
+        n = sub.max_elements
+        F[ids, :n] = sh.gravity_force(sub, material.linear_density, gravity, kin)
+        if HtR is not None:
+            mine = by_chunk[bounds[c]:bounds[c + 1]]
+            HtR[ids, :n] = _point_forces_generalized(sub, kin, local[strand[mine]], arc[mine], point_force[mine])
+    K = sh.stiffness(helix, material.stiffness_diag)
+    res = K * (helix.curvatures - rest_curvatures) - F
+    if HtR is not None:
+        res -= HtR
+    num = np.linalg.norm(res.reshape(S, -1), axis=1)
+    den = np.linalg.norm(F.reshape(S, -1), axis=1)
+    return num / np.maximum(den, np.finfo(float).tiny)
+
+
+def _equilibrium_residuals_reference(helix: sh.SuperHelix, rest_curvatures, material: Material, gravity,
+                                     contacts=None, forces=None) -> np.ndarray:
+    """The original :func:`equilibrium_residuals` (kinematics twice, the second time padded to the
+    longest strand), with the dense point-Jacobian H^T r: tests only."""
     F = gravity_force(helix, material, gravity)
     K = sh.stiffness(helix, material.stiffness_diag)
     res = K * (helix.curvatures - rest_curvatures) - F
     if contacts is not None and forces is not None and len(forces):
-        from .contact.jacobian import generalized_contact_force
+        from .contact.jacobian import _generalized_contact_force_reference
 
-        res -= generalized_contact_force(helix, contacts, forces)
+        res -= _generalized_contact_force_reference(helix, contacts, forces)
     num = np.linalg.norm(res.reshape(helix.n_strands, -1), axis=1)
     den = np.linalg.norm(F.reshape(helix.n_strands, -1), axis=1)
     return num / np.maximum(den, np.finfo(float).tiny)
@@ -433,8 +481,42 @@ def contact_held_unstable(helix, material: Material, gravity, contacts, forces, 
                           isolated_ratios=None) -> np.ndarray:
     """The stiffness ratio of each listed strand when its active contacts (r_N > 0) hold it:
     the Hessian K - dF/dq restricted to motions with H_i dq = 0 for those contacts.  A strand without
-    an active contact keeps its isolated ratio (``isolated_ratios``, computed when not given)."""
-    from .stability import contact_held_ratio
+    an active contact keeps its isolated ratio (``isolated_ratios``, computed when not given).
+    All strands in one batch (stability.contact_held_ratios); each one's rows of H read straight from CSR."""
+    from .stability import _csr_block, contact_held_ratios
+
+    strands = np.asarray(strands, dtype=np.int64)
+    active = np.flatnonzero(forces[:, 0] > 0)
+    strand_a, strand_b = np.asarray(contacts.strand_a)[active], np.asarray(contacts.strand_b)[active]
+    # active contacts grouped by strand (a contact between two strands is listed under both)
+    owner = np.concatenate([strand_a, strand_b[strand_b >= 0]])
+    which = np.concatenate([active, active[strand_b >= 0]])
+    order = np.argsort(owner, kind="stable")
+    owner, which = owner[order], which[order]
+    cols = 3 * helix.flat_offsets()
+    H = H.tocsr()
+    out = np.empty(len(strands))
+    todo, blocked = [], []
+    for k, s in enumerate(strands):
+        lo, hi = np.searchsorted(owner, [s, s + 1])
+        mine = np.unique(which[lo:hi])
+        if not len(mine) and isolated_ratios is not None:
+            out[k] = isolated_ratios[k]
+            continue
+        rows = (3 * mine[:, None] + np.arange(3)).ravel()
+        todo.append(k)
+        blocked.append(_csr_block(H, rows, cols[s], cols[s + 1]) if len(rows) else None)
+    if todo:
+        out[todo] = contact_held_ratios(helix, strands[todo], material.stiffness_diag, material.linear_density,
+                                        gravity, blocked)
+    return out
+
+
+def _contact_held_unstable_reference(helix, material: Material, gravity, contacts, forces, H, strands,
+                                     isolated_ratios=None) -> np.ndarray:
+    """The original :func:`contact_held_unstable` (one strand at a time, its dF/dq recomputed, SVD null
+    space): tests and benchmarks only."""
+    from .stability import _contact_held_ratio_reference as contact_held_ratio
 
     active = np.flatnonzero(forces[:, 0] > 0)
     strand_a, strand_b = np.asarray(contacts.strand_a)[active], np.asarray(contacts.strand_b)[active]

@@ -175,42 +175,85 @@ def generalized_contact_force(helix: sh.SuperHelix, contacts, forces: np.ndarray
     """H^T r from the point forces, without H: (S, N, 3), in O(S N + m) time and memory.
 
     The world force on strand a is f = F_i^T r_i at x = C(s_a), its opposite on strand b.  With
-    dC/domega_k = B_k - [x]x Theta_k for a point beyond element k, f contributes
-    B_k^T f + Theta_k^T (x cross f) to element k, so per strand, with the suffix sums F_{>k} (forces on
-    points beyond element k) and M_{>k} (their moments x cross f about the origin),
+    dC/domega_k = B_k - [x]x Theta_k for a point beyond element k, B_k = R_k D_k + [C_{k+1}]x Theta_k,
+    f contributes B_k^T f + Theta_k^T (x cross f) to element k, so per strand, with the suffix sums F_{>k}
+    (forces on points beyond element k) and M_{>k} (their moments x cross f about the origin),
 
-        Q_k = B_k^T F_{>k} + Theta_k^T M_{>k} + sum over the points on element k of own_p^T f_p.
+        Q_k = D_k^T R_k^T F_{>k} + Theta_k^T (M_{>k} - C_{k+1} x F_{>k}) + sum over the points p on
+              element k of own_p^T f_p.
 
     (The equilibrium check uses this; it never builds H.  _generalized_contact_force_reference is the
     dense point-Jacobian version the tests compare with.)
     """
     kin = kin if kin is not None else sh.kinematics(helix)
-    S, N = helix.curvatures.shape[:2]
-    out = np.zeros((S, N, 3))
     frames = np.asarray(contacts.frame, dtype=np.float64).reshape(-1, 3, 3)
     world = np.einsum("pji,pj->pi", frames, np.asarray(forces, dtype=np.float64).reshape(-1, 3))
-    force_bins = np.zeros((S, N, 3))
-    moment_bins = np.zeros((S, N, 3))
-    for strand, s, f in ((contacts.strand_a, contacts.s_a, world),
-                         (contacts.strand_b, contacts.s_b, -world)):
-        strand = np.asarray(strand, dtype=np.int64)
-        mask = strand >= 0
-        if not np.any(mask):
-            continue
-        strand, f = strand[mask], f[mask]
-        elem, x, own = sh.point_jacobian_parts(helix, strand, np.asarray(s)[mask], kin)
-        np.add.at(out, (strand, elem), np.einsum("pab,pa->pb", own, f))
-        np.add.at(force_bins, (strand, elem), f)
-        np.add.at(moment_bins, (strand, elem), np.cross(x, f))
-    # sums over the elements strictly beyond k
-    beyond_f = np.cumsum(force_bins[:, ::-1], axis=1)[:, ::-1]
-    beyond_m = np.cumsum(moment_bins[:, ::-1], axis=1)[:, ::-1]
-    beyond_f = np.concatenate([beyond_f[:, 1:], np.zeros((S, 1, 3))], axis=1)
-    beyond_m = np.concatenate([beyond_m[:, 1:], np.zeros((S, 1, 3))], axis=1)
-    B = sh.upstream_jacobian_terms(kin)
-    out += np.einsum("snab,sna->snb", B, beyond_f) + np.einsum("snab,sna->snb", kin.Theta, beyond_m)
-    out[~helix.element_mask] = 0.0
+    strand = np.concatenate([np.asarray(contacts.strand_a, dtype=np.int64),
+                             np.asarray(contacts.strand_b, dtype=np.int64)])
+    s = np.concatenate([np.asarray(contacts.s_a, dtype=np.float64), np.asarray(contacts.s_b, dtype=np.float64)])
+    keep = strand >= 0
+    return _point_forces_generalized(helix, kin, strand[keep], s[keep], np.concatenate([world, -world])[keep])
+
+
+def _point_forces_generalized(helix: sh.SuperHelix, kin: sh.Kinematics, strand, s, f) -> np.ndarray:
+    """sum_p (dC(s_p)/dq)^T f_p for world point forces f_p at arc lengths s_p on ``strand``: (S, N, 3)."""
+    S, N = helix.curvatures.shape[:2]
+    out = np.zeros((S, N, 3))
+    if len(strand):
+        strand = np.ascontiguousarray(strand, dtype=np.int64)
+        elem, x, own = sh.point_jacobian_parts(helix, strand, s, kin)
+        _generalized_force_kernel(strand, elem, np.ascontiguousarray(x), np.ascontiguousarray(own),
+                                  np.ascontiguousarray(f, dtype=np.float64), np.ascontiguousarray(kin.C),
+                                  np.ascontiguousarray(kin.R), np.ascontiguousarray(kin.D),
+                                  np.ascontiguousarray(kin.Theta), helix.n_elements, out)
     return out
+
+
+@njit(cache=True)
+def _generalized_force_kernel(strand, elem, x, own, f, C, R, D, Theta, n_elements, out):
+    """Bin the forces, moments x cross f and own_p^T f_p per element, then one pass from each strand's tip
+    (generalized_contact_force)."""
+    S, N = out.shape[0], out.shape[1]
+    force = np.zeros((S, N, 3))
+    moment = np.zeros((S, N, 3))
+    touched = np.zeros(S, dtype=np.bool_)
+    for p in range(strand.shape[0]):
+        k, e = strand[p], elem[p]
+        if e >= n_elements[k]:  # a strand without elements
+            continue
+        touched[k] = True
+        f0, f1, f2 = f[p, 0], f[p, 1], f[p, 2]
+        for b in range(3):
+            out[k, e, b] += own[p, 0, b] * f0 + own[p, 1, b] * f1 + own[p, 2, b] * f2
+        force[k, e, 0] += f0
+        force[k, e, 1] += f1
+        force[k, e, 2] += f2
+        moment[k, e, 0] += x[p, 1] * f2 - x[p, 2] * f1
+        moment[k, e, 1] += x[p, 2] * f0 - x[p, 0] * f2
+        moment[k, e, 2] += x[p, 0] * f1 - x[p, 1] * f0
+    for k in range(S):
+        if not touched[k]:
+            continue
+        F0 = F1 = F2 = 0.0  # forces beyond element j
+        M0 = M1 = M2 = 0.0  # their moments
+        for j in range(n_elements[k] - 1, -1, -1):
+            # r = R_j^T F, m = M - C_{j+1} x F
+            r0 = R[k, j, 0, 0] * F0 + R[k, j, 1, 0] * F1 + R[k, j, 2, 0] * F2
+            r1 = R[k, j, 0, 1] * F0 + R[k, j, 1, 1] * F1 + R[k, j, 2, 1] * F2
+            r2 = R[k, j, 0, 2] * F0 + R[k, j, 1, 2] * F1 + R[k, j, 2, 2] * F2
+            c0, c1, c2 = C[k, j + 1, 0], C[k, j + 1, 1], C[k, j + 1, 2]
+            m0 = M0 - (c1 * F2 - c2 * F1)
+            m1 = M1 - (c2 * F0 - c0 * F2)
+            m2 = M2 - (c0 * F1 - c1 * F0)
+            for b in range(3):
+                out[k, j, b] += (D[k, j, 0, b] * r0 + D[k, j, 1, b] * r1 + D[k, j, 2, b] * r2
+                                 + Theta[k, j, 0, b] * m0 + Theta[k, j, 1, b] * m1 + Theta[k, j, 2, b] * m2)
+            F0 += force[k, j, 0]
+            F1 += force[k, j, 1]
+            F2 += force[k, j, 2]
+            M0 += moment[k, j, 0]
+            M1 += moment[k, j, 1]
+            M2 += moment[k, j, 2]
 
 
 def _generalized_contact_force_reference(helix: sh.SuperHelix, contacts, forces: np.ndarray,

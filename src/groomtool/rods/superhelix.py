@@ -591,7 +591,152 @@ def gravity_force(helix: SuperHelix, linear_density: float, gravity, kin: Kinema
 
 
 def gravity_force_jacobian(helix: SuperHelix, linear_density: float, gravity, kin: Kinematics | None = None):
-    """dF/dq per strand, (S, 3N, 3N), symmetric (F is a gradient)."""
+    """dF/dq per strand, (S, 3N, 3N), symmetric (F is a gradient): blocks U_j G_k above the diagonal,
+    their transposes below, Dg_j on it (:func:`_gravity_hessian_parts`), written once each."""
+    kin = kin if kin is not None else kinematics(helix)
+    U, G, diag = _gravity_hessian_parts(helix, linear_density, gravity, kin)
+    S, N = helix.lengths.shape
+    full = np.empty((S, 3 * N, 3 * N))
+    _assemble_gravity_jacobian(U, G, diag, full)
+    return full
+
+
+def _gravity_hessian_parts(helix: SuperHelix, linear_density: float, gravity, kin: Kinematics):
+    """The generators of dF/dq, each (S, N, 3, 3): U_j = -rhoS Theta_j^T [g]x and G_k (block (j, k) = U_j G_k
+    for j < k, block (k, j) its transpose) and the diagonal blocks Dg_j, the Hessian of
+    rhoS u . (P_j + m_{j+1} p_j + Q_j Y_j) in omega_j (module docstring); one compiled pass
+    (:func:`_gravity_hessian_kernel`)."""
+    g = np.asarray(gravity, dtype=np.float64)
+    l = np.ascontiguousarray(helix.lengths, dtype=np.float64)
+    S, N = l.shape
+    c, dc, ddc = c_table(l, kin.z, order=2)
+    U = np.empty((S, N, 3, 3))
+    G = np.empty((S, N, 3, 3))
+    diag = np.empty((S, N, 3, 3))
+    _gravity_hessian_kernel(l, np.ascontiguousarray(helix.curvatures, dtype=np.float64), np.ascontiguousarray(kin.z),
+                            np.ascontiguousarray(c), np.ascontiguousarray(dc), np.ascontiguousarray(ddc),
+                            np.ascontiguousarray(kin.C), np.ascontiguousarray(kin.R), np.ascontiguousarray(kin.P),
+                            np.ascontiguousarray(kin.D), np.ascontiguousarray(kin.DP), np.ascontiguousarray(kin.Theta),
+                            g, float(linear_density), U, G, diag)
+    return U, G, diag
+
+
+@njit(cache=True)
+def _form_hessian_add(k, beta, dbeta, ddbeta, gamma, dgamma, ddgamma, w, z, u, v, out):
+    """out += k * the Hessian in omega of u . (alpha I + beta(z) W + gamma(z) W^2) v (:func:`_psi_form_hessian`)."""
+    c0 = u[0] * v[0] + u[1] * v[1] + u[2] * v[2]
+    c1 = (v[1] * u[2] - v[2] * u[1], v[2] * u[0] - v[0] * u[2], v[0] * u[1] - v[1] * u[0])
+    uw = u[0] * w[0] + u[1] * w[1] + u[2] * w[2]
+    vw = v[0] * w[0] + v[1] * w[1] + v[2] * w[2]
+    wc1 = w[0] * c1[0] + w[1] * c1[1] + w[2] * c1[2]
+    pz = uw * vw - z * c0
+    gv = (u[0] * vw + v[0] * uw - 2.0 * c0 * w[0], u[1] * vw + v[1] * uw - 2.0 * c0 * w[1],
+          u[2] * vw + v[2] * uw - 2.0 * c0 * w[2])
+    kww = k * (4.0 * ddbeta * wc1 + 4.0 * ddgamma * pz)
+    keye = k * (2.0 * dbeta * wc1 + 2.0 * dgamma * pz - 2.0 * gamma * c0)
+    for a in range(3):
+        for b in range(a + 1):  # symmetric: one computation per pair
+            h = kww * (w[a] * w[b])
+            h += k * 2.0 * dbeta * (w[a] * c1[b] + c1[a] * w[b])
+            h += k * 2.0 * dgamma * (w[a] * gv[b] + gv[a] * w[b])
+            h += k * gamma * (u[a] * v[b] + v[a] * u[b])
+            if a == b:
+                out[a, a] += h + keye
+            else:
+                out[a, b] += h
+                out[b, a] += h
+
+
+@njit(cache=True)
+def _gravity_hessian_kernel(l, w, z, c, dc, ddc, C, R, P, D, DP, Theta, g, rho, U, G, diag):
+    """Per element j (suffix sums from the tip): m = L - S_{j+1}, X = int_{s > S_{j+1}} (C - C_{j+1}) ds,
+    G_j = R_j DP_j + m R_j D_j - [X]x Theta_j, U_j = -rho Theta_j^T [g]x, and diag_j = rho * the Hessian of
+    u . (P_j + m p_j + Q_j Y) in omega_j, u = R_j^T g, Y = R_{j+1}^T X."""
+    S, N = l.shape
+    e0 = np.zeros(3)
+    e0[0] = 1.0
+    wj = np.empty(3)
+    uj = np.empty(3)
+    Yj = np.empty(3)
+    hess = np.empty((3, 3))
+    for s in range(S):
+        m = 0.0
+        m1 = np.zeros(3)  # first moment int C ds of the elements beyond j
+        for j in range(N - 1, -1, -1):
+            # X = m1 - m C_{j+1}
+            X0 = m1[0] - m * C[s, j + 1, 0]
+            X1 = m1[1] - m * C[s, j + 1, 1]
+            X2 = m1[2] - m * C[s, j + 1, 2]
+            for a in range(3):
+                for b in range(3):
+                    rdp = 0.0
+                    rd = 0.0
+                    for k in range(3):
+                        rdp += R[s, j, a, k] * DP[s, j, k, b]
+                        rd += R[s, j, a, k] * D[s, j, k, b]
+                    # ([X]x Theta)_ab = (X x Theta[:, b])_a
+                    if a == 0:
+                        xt = X1 * Theta[s, j, 2, b] - X2 * Theta[s, j, 1, b]
+                    elif a == 1:
+                        xt = X2 * Theta[s, j, 0, b] - X0 * Theta[s, j, 2, b]
+                    else:
+                        xt = X0 * Theta[s, j, 1, b] - X1 * Theta[s, j, 0, b]
+                    G[s, j, a, b] = rdp + m * rd - xt
+            # U_j[a, c] = -rho (Theta_j^T [g]x)[a, c] = -rho (Theta[:, a] . (g x e_c)) = -rho (Theta[:, a] x g)_c
+            for a in range(3):
+                t0, t1, t2 = Theta[s, j, 0, a], Theta[s, j, 1, a], Theta[s, j, 2, a]
+                U[s, j, a, 0] = -rho * (t1 * g[2] - t2 * g[1])
+                U[s, j, a, 1] = -rho * (t2 * g[0] - t0 * g[2])
+                U[s, j, a, 2] = -rho * (t0 * g[1] - t1 * g[0])
+            for a in range(3):
+                wj[a] = w[s, j, a]
+                uj[a] = R[s, j, 0, a] * g[0] + R[s, j, 1, a] * g[1] + R[s, j, 2, a] * g[2]
+                Yj[a] = R[s, j + 1, 0, a] * X0 + R[s, j + 1, 1, a] * X1 + R[s, j + 1, 2, a] * X2
+            for a in range(3):
+                for b in range(3):
+                    hess[a, b] = 0.0
+            zj = z[s, j]
+            _form_hessian_add(1.0, c[3, s, j], dc[3, s, j], ddc[3, s, j], c[4, s, j], dc[4, s, j], ddc[4, s, j],
+                              wj, zj, uj, e0, hess)
+            _form_hessian_add(m, c[2, s, j], dc[2, s, j], ddc[2, s, j], c[3, s, j], dc[3, s, j], ddc[3, s, j],
+                              wj, zj, uj, e0, hess)
+            _form_hessian_add(1.0, c[1, s, j], dc[1, s, j], ddc[1, s, j], c[2, s, j], dc[2, s, j], ddc[2, s, j],
+                              wj, zj, uj, Yj, hess)
+            for a in range(3):
+                for b in range(3):
+                    diag[s, j, a, b] = rho * hess[a, b]
+            # add element j to the moments beyond j - 1: int_element C ds = l C_j + R_j P_j
+            lj = l[s, j]
+            for a in range(3):
+                m1[a] += (lj * C[s, j, a] + R[s, j, a, 0] * P[s, j, 0] + R[s, j, a, 1] * P[s, j, 1]
+                          + R[s, j, a, 2] * P[s, j, 2])
+            m += lj
+
+
+@njit(cache=True)
+def _assemble_gravity_jacobian(U, G, diag, out):
+    """out[s] = the dense 3N x 3N matrix with blocks U_j G_k (j < k), (U_k G_j)^T (j > k), diag_j (j = k),
+    written row after row."""
+    S, N = U.shape[0], U.shape[1]
+    for s in range(S):
+        for r in range(N):
+            for a in range(3):
+                row = 3 * r + a
+                g0, g1, g2 = G[s, r, 0, a], G[s, r, 1, a], G[s, r, 2, a]
+                for j in range(r):  # (U_j G_r)^T: entry (a, b) = U_j[b] . G_r[:, a]
+                    for b in range(3):
+                        out[s, row, 3 * j + b] = U[s, j, b, 0] * g0 + U[s, j, b, 1] * g1 + U[s, j, b, 2] * g2
+                for b in range(3):
+                    out[s, row, 3 * r + b] = diag[s, r, a, b]
+                u0, u1, u2 = U[s, r, a, 0], U[s, r, a, 1], U[s, r, a, 2]
+                for k in range(r + 1, N):
+                    for b in range(3):
+                        out[s, row, 3 * k + b] = u0 * G[s, k, 0, b] + u1 * G[s, k, 1, b] + u2 * G[s, k, 2, b]
+
+
+def _gravity_force_jacobian_reference(helix: SuperHelix, linear_density: float, gravity,
+                                     kin: Kinematics | None = None):
+    """dF/dq assembled with dense batched matmuls (the original :func:`gravity_force_jacobian`): tests only."""
     kin = kin if kin is not None else kinematics(helix)
     g = np.asarray(gravity, dtype=np.float64)
     S, N = helix.lengths.shape
