@@ -112,7 +112,7 @@ def markdown(meta: dict, runs: list[dict]) -> str:
         f"process, numba caches warm. Solver: `auto` unless the row says otherwise (Gauss-Seidel for sparse contacts "
         f"or beyond 10,000, clarabel + Gauss-Seidel polish for dense ones up to 10,000: docs/solvers.md section 9), "
         f"tolerance 1e-8, at most the row's sweep budget (a row that is not converged stopped there, or earlier "
-        f"when its rate projected more than twice the budget: `stalled`; its later stages did not run).",
+        f"when its rate projected more than twice the budget over the last fifth of the run: `stalled`; its later stages did not run).",
         "",
         "Stage columns are wall seconds of `invert_groom` (report.json `timings_s`); `cpu` is the process CPU "
         "time of invert_groom (loading excluded).",
