@@ -437,20 +437,26 @@ def _evaluate_kernel(C, R, w, strand, elem, t, pos, frames):
         Q[2, 0] = -c1 * w1 + c2 * w0 * w2
         Q[1, 2] = -c1 * w0 + c2 * w1 * w2
         Q[2, 1] = c1 * w0 + c2 * w1 * w2
-        # p = t e0 + c2 (0, w2, -w1) + c3 (w0 w - z e0)
-        p[0] = ti + c3 * (w0 * w0 - z)
-        p[1] = c2 * w2 + c3 * w0 * w1
-        p[2] = -c2 * w1 + c3 * w0 * w2
+        _place_point(C, R, k, e, ti, w0, w1, w2, z, c2, c3, p, pos[i])
         for a in range(3):
-            acc = C[k, e, a]
-            for b in range(3):
-                acc += R[k, e, a, b] * p[b]
-            pos[i, a] = acc
             for b in range(3):
                 acc = 0.0
                 for m in range(3):
                     acc += R[k, e, a, m] * Q[m, b]
                 frames[i, a, b] = acc
+
+
+@njit(cache=True)
+def _place_point(C, R, k, e, ti, w0, w1, w2, z, c2, c3, p, out):
+    """out = C_e + R_e p, p = t e0 + c2 (0, w2, -w1) + c3 (w0 w - z e0) (p: a 3-buffer)."""
+    p[0] = ti + c3 * (w0 * w0 - z)
+    p[1] = c2 * w2 + c3 * w0 * w1
+    p[2] = -c2 * w1 + c3 * w0 * w2
+    for a in range(3):
+        acc = C[k, e, a]
+        for b in range(3):
+            acc += R[k, e, a, b] * p[b]
+        out[a] = acc
 
 
 def sample(helix: SuperHelix, per_element: int = 4, kin: Kinematics | None = None):
@@ -489,15 +495,7 @@ def _position_kernel(C, R, w, strand, elem, t, pos):
         z = w0 * w0 + w1 * w1 + w2 * w2
         t2 = ti * ti
         f2, f3 = _f23_point(z * t2)
-        c2, c3 = t2 * f2, t2 * ti * f3
-        p[0] = ti + c3 * (w0 * w0 - z)
-        p[1] = c2 * w2 + c3 * w0 * w1
-        p[2] = -c2 * w1 + c3 * w0 * w2
-        for a in range(3):
-            acc = C[k, e, a]
-            for b in range(3):
-                acc += R[k, e, a, b] * p[b]
-            pos[i, a] = acc
+        _place_point(C, R, k, e, ti, w0, w1, w2, z, t2 * f2, t2 * ti * f3, p, pos[i])
 
 
 def point_jacobians(helix: SuperHelix, strand, s, kin: Kinematics | None = None):
