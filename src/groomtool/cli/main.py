@@ -29,7 +29,7 @@ EPILOG_INVERT = """examples:
   groom invert harolongo.data --units cm --head head.obj --contacts head --snap-roots
   groom invert guides.hair --up z --tolerance 2e-4 --young 2.5e9 --radius 35e-6 --quiet
 
-outputs (in OUTDIR, each written atomically): rest.npz, rest_shape.obj, fitted.obj, report.json
+outputs (in OUTDIR, written as one atomic set): rest.npz, rest_shape.obj, fitted.obj, report.json
 exit codes: 0 ok, 1 user error, 2 solver did not converge (nothing written)
 """
 
@@ -148,7 +148,10 @@ def cmd_info(args) -> int:
 
 def cmd_invert(args) -> int:
     from ..invert import SolverFailure, invert_groom
+    from ..io.outset import check_target
+    from ..io.results import write_result
 
+    check_target(args.output, inputs=(args.input, args.head))  # before any computation
     groom, head, scale = _load_inputs(args)
     if args.contacts == "head" and head is None:
         raise UserError("--contacts head needs --head MESH")
@@ -163,10 +166,9 @@ def cmd_invert(args) -> int:
         return EXIT_NOT_CONVERGED
     result.report["input_units"] = args.units
     formats = tuple(args.format) if args.format else ("npz", "obj", "json")
-    written = result.save(args.output, formats=formats)
     extra = [f for f in formats if f in ("usd", "vtp", "hair")]
-    if extra:
-        written += export_cmd.export_formats(result, args.output, extra)
+    written = write_result(result, args.output, formats=formats,
+                           extra=(lambda stage: export_cmd.export_formats(result, stage, extra)) if extra else None)
     if not args.quiet:
         print(summary(result, written))
     return EXIT_OK

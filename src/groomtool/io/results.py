@@ -1,7 +1,8 @@
 """Write an inversion result into an output directory: rest.npz, rest_shape.obj, fitted.obj, report.json.
 
-Every file is written atomically (temp file then rename): an existing output is never half-overwritten.
-The schema of rest.npz is documented in docs/outputs.md.
+The directory is one atomic set (io/outset.py): all files are written into a staging directory and
+swapped in together, so the directory holds the old complete set or the new one, never a mix, and
+no stale output of an earlier run.  The schema of rest.npz is documented in docs/outputs.md.
 """
 
 from __future__ import annotations
@@ -11,8 +12,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..groom import Groom
+from ..groom import Groom, GroomError
 from .atomic import atomic_open
+from .outset import output_set
 
 NPZ_SCHEMA_VERSION = 1
 
@@ -81,22 +83,31 @@ def write_npz(path, arrays: dict) -> None:
         np.savez_compressed(f, **arrays)
 
 
-def write_result(result, outdir, formats=("npz", "obj", "json")) -> list[Path]:
-    """Write the requested outputs into ``outdir`` (created if needed); returns the written paths."""
+def write_result(result, outdir, formats=("npz", "obj", "json"), extra=None) -> list[Path]:
+    """Write the requested outputs as one set at ``outdir`` (created if needed); returns the paths.
+
+    ``extra(directory) -> [paths]`` writes more files into the set (``groom invert --format usd``).
+    A failure (full disk, interrupt) leaves ``outdir`` as it was; OSError becomes GroomError.
+    """
     from . import save_groom
 
-    outdir = Path(outdir)
-    outdir.mkdir(parents=True, exist_ok=True)
-    written = []
-    if "npz" in formats:
-        write_npz(outdir / "rest.npz", result_arrays(result))
-        written.append(outdir / "rest.npz")
-    if "obj" in formats:
-        for name, (pts, offsets) in (("rest_shape.obj", result.rest_shape()),
-                                     ("fitted.obj", result.fitted_shape())):
-            save_groom(Groom(pts, offsets, up=result.groom.up, source=name), outdir / name)
-            written.append(outdir / name)
-    if "json" in formats:
-        write_json(outdir / "report.json", result.report)
-        written.append(outdir / "report.json")
-    return written
+    try:
+        with output_set(outdir) as stage:
+            written = []
+            if "npz" in formats:
+                write_npz(stage / "rest.npz", result_arrays(result))
+                written.append("rest.npz")
+            if "obj" in formats:
+                for name, (pts, offsets) in (("rest_shape.obj", result.rest_shape()),
+                                             ("fitted.obj", result.fitted_shape())):
+                    save_groom(Groom(pts, offsets, up=result.groom.up, source=name), stage / name)
+                    written.append(name)
+            if "json" in formats:
+                write_json(stage / "report.json", result.report)
+                written.append("report.json")
+            if extra is not None:
+                written += [Path(p).relative_to(stage) for p in extra(stage)]
+    except OSError as exc:
+        raise GroomError(f"{outdir}: cannot write the outputs: {exc.strerror or exc}; "
+                         "the directory is unchanged") from exc
+    return [Path(outdir) / name for name in written]
