@@ -210,8 +210,9 @@ def test_dispatch_options(tmp_path):
     z_up = load_groom(path, units=0.5, up="z")
     assert z_up.up == "z"
     np.testing.assert_allclose(z_up.points, 0.5 * groom.points, atol=1e-6)
+    assert load_groom(path, up="-x").up == "-x"  # any signed axis
     with pytest.raises(GroomError, match="up axis"):
-        load_groom(path, up="x")
+        load_groom(path, up="w")
     with pytest.raises(GroomError, match="unknown units"):
         load_groom(path, units="furlong")
     with pytest.raises(GroomError, match="positive"):

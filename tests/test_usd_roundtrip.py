@@ -14,17 +14,27 @@ from groomtool.rods.der import der_rest_data  # noqa: E402
 from groomtool.viz import fields  # noqa: E402
 from test_viz_fields import synthetic_result  # noqa: E402
 
-# (name, interpolation, type) as listed in docs/usd.md, on /Groom/Strands
+# (name, interpolation, type) as listed in docs/usd.md, on /Groom/Strands: all float (DCCs drop doubles)
 STRAND_PRIMVARS = [
-    ("groom:young_modulus", "uniform", "double[]"), ("groom:shear_modulus", "uniform", "double[]"),
-    ("groom:radius", "uniform", "double[]"), ("groom:density", "uniform", "double[]"),
-    ("groom:friction", "uniform", "double[]"), ("groom:strand_offsets", "constant", "int[]"),
-    ("groom:element_lengths", "constant", "double[]"), ("groom:curvatures", "constant", "double3[]"),
-    ("groom:rest_curvatures", "constant", "double3[]"), ("groom:root_positions", "uniform", "double3[]"),
-    ("groom:root_frames", "uniform", "double[]"), ("groom:fit_max_error", "uniform", "double[]"),
-    ("groom:stiffness_ratio", "uniform", "double[]"), ("groom:gravity", "constant", "double3[]"),
+    ("groom:young_modulus", "uniform", "float[]"), ("groom:shear_modulus", "uniform", "float[]"),
+    ("groom:radius", "uniform", "float[]"), ("groom:density", "uniform", "float[]"),
+    ("groom:friction", "uniform", "float[]"), ("groom:fit_max_error", "uniform", "float[]"),
+    ("groom:stiffness_ratio", "uniform", "float[]"),
     ("groom:der_rest_lengths", "vertex", "float[]"), ("groom:der_rest_kappa", "vertex", "float2[]"),
-    ("groom:der_rest_twist", "vertex", "float[]"), ("groom:der_frames", "vertex", "float[]"),
+    ("groom:der_rest_twist", "vertex", "float[]"), ("groom:der_frames", "vertex", "quatf[]"),
+    ("rest_position", "vertex", "point3f[]"), ("rest_length", "vertex", "float[]"),
+    ("rest_rotation", "vertex", "quatf[]"), ("rest_bend_rotation", "vertex", "quatf[]"),
+    ("orient", "vertex", "quatf[]"),
+]
+# (name, type) of the exact data, plain attributes of /Groom/Strands
+STRAND_EXACT = [
+    ("groomtool:young_modulus", "double"), ("groomtool:shear_modulus", "double"), ("groomtool:radius", "double"),
+    ("groomtool:density", "double"), ("groomtool:friction", "double"), ("groomtool:gravity", "double3"),
+    ("groomtool:strand_offsets", "int[]"), ("groomtool:element_lengths", "double[]"),
+    ("groomtool:curvatures", "double3[]"), ("groomtool:rest_curvatures", "double3[]"),
+    ("groomtool:root_positions", "double3[]"), ("groomtool:root_frames", "double[]"),
+    ("groomtool:fit_max_error", "double[]"), ("groomtool:stiffness_ratio", "double[]"),
+    ("physics:restShapePoints", "point3f[]"), ("physics:restNormals", "normal3f[]"),
 ]
 TOL = 1e-6
 
@@ -69,10 +79,19 @@ def test_stage_layout_and_primvars(result, tmp_path, suffix):
     pv = UsdGeom.PrimvarsAPI(rendered[0])
     for name, interpolation, type_name in STRAND_PRIMVARS:
         primvar = pv.GetPrimvar(name)
-        assert primvar, name
+        assert primvar.IsDefined(), name
         assert primvar.GetInterpolation() == interpolation, name
         assert str(primvar.GetTypeName()) == type_name, name
         assert primvar.ValueMightBeTimeVarying() is False
+    prim = rendered[0]
+    for name, type_name in STRAND_EXACT:
+        attr = prim.GetAttribute(name)
+        assert attr and attr.HasAuthoredValue(), name
+        assert str(attr.GetTypeName()) == type_name, name
+    for p in stage.Traverse():  # what Blender drops (double) or reads as zeros (9-value elements)
+        for primvar in UsdGeom.PrimvarsAPI(p).GetPrimvars():
+            assert "double" not in str(primvar.GetTypeName()), primvar.GetName()
+            assert primvar.GetElementSize() == 1, primvar.GetName()
     assert pv.GetPrimvar("groom:der_rest_kappa").GetAttr().GetCustomDataByKey("groomtool:layout") == "interior"
     assert stage.GetPrimAtPath("/Groom/Head").IsA(UsdGeom.Mesh)
     assert stage.GetPrimAtPath("/Groom/Contacts").IsA(UsdGeom.Points)

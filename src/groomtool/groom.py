@@ -1,8 +1,9 @@
 """The groom: many strands stored as one ragged array.
 
 A groom is ``points`` (V, 3) float64 in metres and ``offsets`` (S + 1,) int64 such that strand ``i``
-is ``points[offsets[i]:offsets[i + 1]]``, root first.  Internally everything is SI and y-up or z-up
-as the data came; ``up`` records which axis points up so gravity can be built from it.
+is ``points[offsets[i]:offsets[i + 1]]``, root first.  Internally everything is SI in the frame the
+data came in (nothing is rotated); ``up`` records which axis points up (x, y, z, -x, -y or -z) so
+gravity can be built from it.
 """
 
 from __future__ import annotations
@@ -12,7 +13,16 @@ from dataclasses import dataclass, field
 import numpy as np
 
 UNIT_SCALE = {"m": 1.0, "cm": 1e-2, "mm": 1e-3}
-UP_AXES = ("y", "z")
+UP_AXES = ("y", "z", "x", "-x", "-y", "-z")
+
+
+def up_vector(up: str) -> np.ndarray:
+    """Unit vector of an up axis ("x", "y", "z", "-x", "-y", "-z")."""
+    if up not in UP_AXES:
+        raise GroomError(f"up axis must be one of {', '.join(UP_AXES)}, got {up!r}")
+    v = np.zeros(3)
+    v["xyz".index(up[-1])] = -1.0 if up.startswith("-") else 1.0
+    return v
 
 
 class GroomError(ValueError):
@@ -25,7 +35,7 @@ class Groom:
 
     points:  (V, 3) float64 vertex positions, strands stored one after the other, root first.
     offsets: (S + 1,) int64, strand i is points[offsets[i]:offsets[i + 1]].
-    up:      "y" or "z", the axis pointing away from the ground.
+    up:      "y", "z", "x", "-x", "-y" or "-z": the axis pointing away from the ground.
     source:  where the data came from (a path or a description), for messages and reports.
     """
 
@@ -117,9 +127,7 @@ class Groom:
 
     def gravity(self, g: float = 9.81) -> np.ndarray:
         """Gravity vector (m/s^2) in this groom's frame: minus ``g`` along the up axis."""
-        v = np.zeros(3)
-        v["xyz".index(self.up)] = -g
-        return v
+        return up_vector(self.up) * -g + 0.0  # + 0.0: no negative zeros
 
     def subset(self, strand_ids) -> "Groom":
         strand_ids = np.asarray(strand_ids, dtype=np.int64)

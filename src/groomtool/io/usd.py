@@ -4,9 +4,14 @@
 type and unit)::
 
     /Groom            Xform, the default prim
-    /Groom/Strands    BasisCurves (linear): the groomed strands, material, Super-Helix and
-                      per-vertex discrete-rod rest data as ``primvars:groom:*``
-    /Groom/RestShape  BasisCurves (linear, purpose "guide"): the rest shape
+    /Groom/Strands    BasisCurves (linear): the groomed strands; per-vertex rest data under the
+                      names simulators read (``physics:restShapePoints``, ``physics:restNormals``,
+                      ``primvars:rest_position``, ``rest_rotation``, ``rest_bend_rotation``,
+                      ``rest_length``, ``orient``), float material and discrete-rod primvars
+                      ``primvars:groom:*`` and the exact double data as plain ``groomtool:*``
+                      attributes (not primvars: DCCs drop double primvars)
+    /Groom/RestShape  BasisCurves (linear, purpose "guide"): the rest shape, vertex for vertex
+                      the points of Strands, with its ``orient``
     /Groom/Contacts   Points: contact points and forces (when there are contacts)
     /Groom/Head       Mesh: the head (when the result has one)
 
@@ -23,16 +28,23 @@ import numpy as np
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdPhysics, UsdUtils, Vt
 
 from ..groom import Groom, GroomError
+from ..rods import superhelix as sh
 from ..viz import fields
 from .atomic import atomic_path
 from .validate import validate
 
-SCHEMA_VERSION = 1
-NS = "groom:"  # primvar namespace: primvars:groom:<rest.npz key>
+SCHEMA_VERSION = 2
+NS = "groom:"  # float primvar namespace: primvars:groom:<rest.npz key>
+EXACT = "groomtool:"  # exact (double / int) data as plain attributes groomtool:<rest.npz key>
+ENCODING_KEY = "groomtool:encoding"  # customData: "quaternion" for frames stored as quatf
 LAYOUT_KEY = "groomtool:layout"  # customData of per-vertex rod primvars: vertex | edge | interior
 SHAPE_KEY = "groomtool:shape"  # customData: trailing shape of matrix-valued primvars, e.g. [3, 3]
 ROD_PREFIXES = ("der_", "cosserat_", "node_")
 MATERIAL_KEYS = ("young_modulus", "shear_modulus", "radius", "density", "friction")
+# per-strand material arrays (S,) a result may carry; written as float primvars named after the
+# scalar they refine (strand_young_modulus -> primvars:groom:young_modulus), exact as groomtool:<key>
+STRAND_MATERIAL = {"strand_young_modulus": "young_modulus", "strand_shear_modulus": "shear_modulus",
+                   "stiffness_factor": "stiffness_factor"}
 HELIX_CONSTANT = ("element_lengths", "curvatures", "rest_curvatures")
 HELIX_UNIFORM = ("root_positions", "root_frames", "fit_max_error", "stiffness_ratio")
 CONTACT_KEYS = ("contact_strand_a", "contact_strand_b", "contact_s_a", "contact_s_b", "contact_points_b",
@@ -74,36 +86,49 @@ def build_stage(arrays: dict, per_element: int = 8, head=None) -> Usd.Stage:
 
     stage = Usd.Stage.CreateInMemory()
     UsdGeom.SetStageMetersPerUnit(stage, 1.0)
-    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z if fields.up_axis(arrays) == "z" else UsdGeom.Tokens.y)
+    up = _signed_up(arrays)
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z if up.endswith("z") else UsdGeom.Tokens.y)
     UsdPhysics.SetStageKilogramsPerUnit(stage, 1.0)
     root = UsdGeom.Xform.Define(stage, GROOM).GetPrim()
     stage.SetDefaultPrim(root)
     samples = fields.sample(arrays, per_element)
     radius = float(arrays.get("radius", 40e-6))
-    rod_points, rod_offsets, rod_data, origin = _rod_data(arrays, samples)
+    rod_points, rod_offsets, rod_data, origin, arc = _rod_data(arrays, samples)
     stage.GetRootLayer().customLayerData = {"groomtool": {
-        "version": __version__, "schema_version": SCHEMA_VERSION,
+        "version": __version__, "schema_version": SCHEMA_VERSION, "up": up,
         "source": str(arrays.get("source", "")), "discrete_rest_data": origin}}
 
     curves = _curves(stage, STRANDS, rod_points, rod_offsets, radius, (0.45, 0.3, 0.15))
+    prim = curves.GetPrim()
     pv = UsdGeom.PrimvarsAPI(curves)
     S = len(rod_offsets) - 1
+    # material: float primvars per strand (what DCCs import), exact values as groomtool:* attributes
     for key in MATERIAL_KEYS:
         if key in arrays:
-            _primvar(pv, key, np.full(S, float(arrays[key])), UsdGeom.Tokens.uniform, double=True)
-    _primvar(pv, "strand_offsets", np.asarray(arrays["strand_offsets"]), UsdGeom.Tokens.constant)
+            _exact(prim, key, np.asarray(arrays[key], dtype=np.float64))
+            _primvar(pv, key, np.full(S, float(arrays[key])), UsdGeom.Tokens.uniform)
+    for key, name in STRAND_MATERIAL.items():
+        if key in arrays and np.asarray(arrays[key]).shape == (S,):
+            _exact(prim, key, np.asarray(arrays[key], dtype=np.float64))
+            _primvar(pv, name, np.asarray(arrays[key]), UsdGeom.Tokens.uniform)
+    _exact(prim, "strand_offsets", np.asarray(arrays["strand_offsets"]))
     for key in HELIX_CONSTANT:
-        _primvar(pv, key, np.asarray(arrays[key]), UsdGeom.Tokens.constant, double=True)
+        _exact(prim, key, np.asarray(arrays[key]))
     for key in HELIX_UNIFORM:
         if key in arrays and len(arrays[key]) == S:
-            _primvar(pv, key, np.asarray(arrays[key]), UsdGeom.Tokens.uniform, double=True)
+            _exact(prim, key, np.asarray(arrays[key]))
+            if np.asarray(arrays[key]).ndim == 1:  # fit_max_error, stiffness_ratio: shown in DCCs
+                _primvar(pv, key, np.asarray(arrays[key]), UsdGeom.Tokens.uniform)
     if "gravity" in arrays:
-        _primvar(pv, "gravity", np.asarray(arrays["gravity"]).reshape(1, 3), UsdGeom.Tokens.constant, double=True)
+        _exact(prim, "gravity", np.asarray(arrays["gravity"], dtype=np.float64).reshape(3))
     for key, (values, layout) in rod_data.items():
         _primvar(pv, key, _pad(values, layout, rod_offsets), UsdGeom.Tokens.vertex, layout=layout)
 
-    rest = _curves(stage, REST, samples.rest_points, samples.offsets, radius, (0.2, 0.5, 0.9))
-    rest.CreatePurposeAttr(UsdGeom.Tokens.guide)
+    rest = _consumer_rest(arrays, rod_points, rod_offsets, arc, rod_data)
+    _write_consumer_rest(curves, rest)
+    rest_curves = _curves(stage, REST, rest["points"], rod_offsets, radius, (0.2, 0.5, 0.9))
+    rest_curves.CreatePurposeAttr(UsdGeom.Tokens.guide)
+    _quat_primvar(UsdGeom.PrimvarsAPI(rest_curves), "orient", rest["rotation"])
     _write_contacts(stage, arrays, radius)
     mesh = fields.head_mesh(arrays)
     if mesh is None and head is not None:
@@ -113,8 +138,154 @@ def build_stage(arrays: dict, per_element: int = 8, head=None) -> Usd.Stage:
     return stage
 
 
+def _signed_up(arrays: dict) -> str:
+    """The groom's up direction (x, y, z, -x, -y, -z): opposite to ``gravity``, "y" when unknown."""
+    g = np.asarray(arrays.get("gravity", np.zeros(3)), dtype=np.float64).reshape(-1)
+    if g.size != 3 or not np.any(g):
+        return "y"
+    axis = int(np.argmax(np.abs(g)))
+    return ("" if g[axis] < 0 else "-") + "xyz"[axis]
+
+
+# ------------------------------------------------------------------------------------- consumer rest data
+def _rest_arc(arrays: dict, points: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+    """Helix arc length of the rod vertices: their polyline arc length scaled to the helix length
+    (as :func:`fields.der_rest_geometry` does)."""
+    arc = fields.polyline_arc(points, offsets)
+    counts = np.diff(offsets)
+    tips = arc[np.maximum(offsets[1:] - 1, 0)]
+    lengths = fields.helix(arrays).strand_lengths
+    strand = np.repeat(np.arange(len(counts)), counts)
+    return arc * (lengths / np.where(tips > 0, tips, 1.0))[strand]
+
+
+def _edge_frames(points: np.ndarray, offsets: np.ndarray, helix_frames: np.ndarray) -> np.ndarray:
+    """(E, 3, 3) frames of the polyline's edges, rows (d1, d2, d3 = edge tangent): d1 the helix
+    frame's n1 at the edge midpoint made normal to the edge (docs/usd.md)."""
+    from ..rods.discrete import edge_start_vertices
+
+    e0 = edge_start_vertices(offsets)
+    t = points[e0 + 1] - points[e0]
+    t /= np.linalg.norm(t, axis=1)[:, None]
+    d1 = helix_frames[:, :, 1] - np.einsum("ij,ij->i", helix_frames[:, :, 1], t)[:, None] * t
+    d1 /= np.linalg.norm(d1, axis=1)[:, None]
+    return np.stack([d1, np.cross(t, d1), t], axis=1)
+
+
+def _per_vertex(edge_values: np.ndarray, offsets: np.ndarray, tip=None) -> np.ndarray:
+    """Edge values at vertices: edge j at its first vertex; each tip gets ``tip`` (default: the
+    value of the strand's last edge)."""
+    from ..rods.discrete import edge_start_vertices
+
+    e0 = edge_start_vertices(offsets)
+    out = np.empty((int(offsets[-1]),) + edge_values.shape[1:], dtype=edge_values.dtype)
+    out[e0] = edge_values
+    tips = offsets[1:] - 1
+    out[tips] = edge_values[np.searchsorted(e0, tips) - 1] if tip is None else tip
+    return out
+
+
+def frames_to_quaternions(frames: np.ndarray) -> np.ndarray:
+    """(n, 3, 3) frames with rows (d1, d2, d3) -> (n, 4) unit quaternions (x, y, z, w) of the
+    rotation taking the axes (X, Y, Z) to (d1, d2, d3), w >= 0."""
+    from scipy.spatial.transform import Rotation
+
+    if len(frames) == 0:
+        return np.zeros((0, 4))
+    q = Rotation.from_matrix(np.transpose(frames, (0, 2, 1))).as_quat()
+    return q * np.where(q[:, 3:] < 0, -1.0, 1.0)
+
+
+def quaternions_to_frames(q: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`frames_to_quaternions`: (n, 4) (x, y, z, w) -> (n, 3, 3) rows (d1, d2, d3)."""
+    from scipy.spatial.transform import Rotation
+
+    if len(q) == 0:
+        return np.zeros((0, 3, 3))
+    return np.transpose(Rotation.from_quat(np.asarray(q, dtype=np.float64)).as_matrix(), (0, 2, 1))
+
+
+def _quat_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Hamilton products a b of (n, 4) quaternions (x, y, z, w)."""
+    av, aw, bv, bw = a[:, :3], a[:, 3:], b[:, :3], b[:, 3:]
+    return np.concatenate([aw * bv + bw * av + np.cross(av, bv),
+                           aw * bw - np.einsum("ij,ij->i", av, bv)[:, None]], axis=1)
+
+
+def _consumer_rest(arrays: dict, points: np.ndarray, offsets: np.ndarray, arc, rod_data: dict) -> dict:
+    """Per-vertex rest data of the Strands polyline (V vertices) as simulators name them.
+
+    points: the rest helices at the vertices' arc lengths; rotation: the rest frame of the edge
+    leaving each vertex (tip: its last edge's) as a quaternion; bend: q_i^-1 q_(i+1) (identity at
+    the last edge and the tip); length: the rest length of the edge leaving each vertex (der_rest_lengths
+    when the data have them; 0 at the tip); normal: d1 of the rest frame; orient: the groomed frame.
+    """
+    from ..rods.discrete import edge_start_vertices
+
+    counts = np.diff(offsets)
+    S = len(counts)
+    strand = np.repeat(np.arange(S), counts)
+    if arc is None:
+        arc = _rest_arc(arrays, points, offsets)
+    rest_helix = fields.helix(arrays, rest=True)
+    rest_points, _ = sh.evaluate(rest_helix, strand, arc)
+    out = {"points": rest_points}
+    if np.any(counts < 2):
+        raise GroomError("USD rest data need strands of at least 2 vertices")
+    e0 = edge_start_vertices(offsets)
+    mid = 0.5 * (arc[e0] + arc[e0 + 1])
+    _, rest_helix_frames = sh.evaluate(rest_helix, strand[e0], mid)
+    rest_frames = _edge_frames(rest_points, offsets, rest_helix_frames)
+    if "cosserat_directors" in rod_data:
+        groomed = rod_data["cosserat_directors"][0]
+    elif "der_frames" in rod_data:
+        groomed = rod_data["der_frames"][0]
+    else:
+        _, fitted_frames = sh.evaluate(fields.helix(arrays), strand[e0], mid)
+        groomed = _edge_frames(points, offsets, fitted_frames)
+    q_rest = frames_to_quaternions(rest_frames)
+    rotation = _per_vertex(q_rest, offsets)
+    out["rotation"] = rotation
+    out["normals"] = _per_vertex(rest_frames[:, 0], offsets)
+    nxt = np.minimum(np.arange(len(points)) + 1, len(points) - 1)
+    bend = _quat_multiply(rotation * [-1.0, -1.0, -1.0, 1.0], rotation[nxt])
+    bend[offsets[1:] - 1] = [0.0, 0.0, 0.0, 1.0]
+    out["bend_rotation"] = bend * np.where(bend[:, 3:] < 0, -1.0, 1.0)
+    if "der_rest_lengths" in rod_data:
+        lengths = rod_data["der_rest_lengths"][0]
+    else:
+        lengths = np.linalg.norm(rest_points[e0 + 1] - rest_points[e0], axis=1)
+    out["length"] = _per_vertex(np.asarray(lengths, dtype=np.float64), offsets, tip=0.0)
+    out["orient"] = _per_vertex(frames_to_quaternions(np.asarray(groomed, dtype=np.float64)), offsets)
+    return out
+
+
+def _write_consumer_rest(curves: UsdGeom.BasisCurves, rest: dict) -> None:
+    prim = curves.GetPrim()
+    points = prim.CreateAttribute("physics:restShapePoints", Sdf.ValueTypeNames.Point3fArray, custom=False)
+    points.Set(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(rest["points"], dtype=np.float32)))
+    normals = prim.CreateAttribute("physics:restNormals", Sdf.ValueTypeNames.Normal3fArray, custom=False)
+    normals.Set(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(rest["normals"], dtype=np.float32)))
+    pv = UsdGeom.PrimvarsAPI(curves)
+    position = pv.CreatePrimvar("rest_position", Sdf.ValueTypeNames.Point3fArray, UsdGeom.Tokens.vertex)
+    position.Set(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(rest["points"], dtype=np.float32)))
+    length = pv.CreatePrimvar("rest_length", Sdf.ValueTypeNames.FloatArray, UsdGeom.Tokens.vertex)
+    length.Set(Vt.FloatArray.FromNumpy(np.ascontiguousarray(rest["length"], dtype=np.float32)))
+    _quat_primvar(pv, "rest_rotation", rest["rotation"])
+    _quat_primvar(pv, "rest_bend_rotation", rest["bend_rotation"])
+    _quat_primvar(pv, "orient", rest["orient"])
+
+
+def _quat_primvar(pv: UsdGeom.PrimvarsAPI, name: str, q: np.ndarray) -> UsdGeom.Primvar:
+    """A quatf[] vertex primvar from (n, 4) quaternions (x, y, z, w), USD's memory order."""
+    primvar = pv.CreatePrimvar(name, Sdf.ValueTypeNames.QuatfArray, UsdGeom.Tokens.vertex)
+    primvar.Set(Vt.QuatfArray.FromNumpy(np.ascontiguousarray(q, dtype=np.float32)))
+    return primvar
+
+
 def _rod_data(arrays: dict, samples) -> tuple:
-    """Points, offsets and {key: (values, layout)} of the discrete-rod polyline written as Strands.
+    """Points, offsets, {key: (values, layout)}, origin and helix arc lengths (None: from the
+    polyline) of the discrete-rod polyline written as Strands.
 
     With a discrete export (``rod_points``, ``rod_offsets`` and der_/cosserat_/node_ arrays) that
     polyline and its arrays; without, the fitted helix samples.  DER data missing from the export
@@ -139,7 +310,7 @@ def _rod_data(arrays: dict, samples) -> tuple:
             data[key] = (value, sizes[len(value)])
         if origin == "discrete export":
             origin = "discrete export; DER data from the rest helix geometry"
-    return points, offsets, data, origin
+    return points, offsets, data, origin, arc
 
 
 def _pad(values: np.ndarray, layout: str, offsets: np.ndarray) -> np.ndarray:
@@ -173,10 +344,24 @@ _DOUBLE = {1: (Sdf.ValueTypeNames.DoubleArray, Vt.DoubleArray), 2: (Sdf.ValueTyp
 def _primvar(pv: UsdGeom.PrimvarsAPI, key: str, values: np.ndarray, interpolation, double: bool = False,
              layout: str | None = None) -> UsdGeom.Primvar:
     """Create primvars:groom:<key>.  Ints as int[]; floats as float or double, (n, 2) and (n, 3) as
-    2- and 3-vectors, other trailing shapes flattened with elementSize = components (the shape, e.g.
-    [3, 3], in customData).  A constant array primvar gets elementSize = its length (one value)."""
+    2- and 3-vectors; (n, 3, 3) rotations (frames, rows d1 d2 d3) as quatf (customData
+    ``groomtool:encoding = "quaternion"``, DCCs read quaternions but zero 9-value elements); other
+    trailing shapes flattened with elementSize = components (the shape, e.g. [3, 3], in customData).
+    A constant array primvar gets elementSize = its length (one value)."""
     values = np.asarray(values)
     n, trailing = len(values), values.shape[1:]
+    if trailing == (3, 3) and values.dtype.kind == "f" and _are_rotations(values):
+        live = np.any(values.reshape(n, 9) != 0, axis=1)  # padding (tips, roots): identity
+        q = np.tile([0.0, 0.0, 0.0, 1.0], (n, 1))
+        q[live] = frames_to_quaternions(values[live].astype(np.float64))
+        primvar = _quat_primvar(pv, NS + key, q)
+        primvar.SetInterpolation(interpolation)
+        attr = primvar.GetAttr()
+        attr.SetCustomDataByKey(ENCODING_KEY, "quaternion")
+        attr.SetCustomDataByKey(SHAPE_KEY, Vt.IntArray([3, 3]))
+        if layout is not None:
+            attr.SetCustomDataByKey(LAYOUT_KEY, layout)
+        return primvar
     k = int(np.prod(trailing)) if trailing else 1
     if values.dtype.kind in "iub":
         (type_name, vt), flat = (Sdf.ValueTypeNames.IntArray, Vt.IntArray), values.astype(np.int32).reshape(n, k)
@@ -199,6 +384,43 @@ def _primvar(pv: UsdGeom.PrimvarsAPI, key: str, values: np.ndarray, interpolatio
     if len(trailing) > 1:
         attr.SetCustomDataByKey(SHAPE_KEY, Vt.IntArray([int(d) for d in trailing]))
     return primvar
+
+
+def _are_rotations(m: np.ndarray, tol: float = 1e-6) -> bool:
+    """True when every (3, 3) matrix (rows) is orthonormal and right-handed (padding zeros allowed)."""
+    m = np.asarray(m, dtype=np.float64)
+    live = np.any(m.reshape(len(m), 9) != 0, axis=1)
+    m = m[live]
+    gram = np.einsum("nij,nkj->nik", m, m)
+    return bool(np.all(np.abs(gram - np.eye(3)) <= tol) and np.all(np.linalg.det(m) > 0))
+
+
+def _exact(prim, key: str, values: np.ndarray):
+    """Plain attribute groomtool:<key> with the exact value: double / double3 scalars, int[],
+    double[] and double3[] arrays; other trailing shapes flattened with the shape in customData."""
+    values = np.asarray(values)
+    name = EXACT + key
+    if values.ndim == 0:
+        attr = prim.CreateAttribute(name, Sdf.ValueTypeNames.Double, custom=True)
+        attr.Set(float(values))
+        return attr
+    if values.ndim == 1 and values.shape == (3,) and key == "gravity":
+        attr = prim.CreateAttribute(name, Sdf.ValueTypeNames.Double3, custom=True)
+        attr.Set(Gf.Vec3d(*map(float, values)))
+        return attr
+    n, trailing = len(values), values.shape[1:]
+    if values.dtype.kind in "iub":
+        attr = prim.CreateAttribute(name, Sdf.ValueTypeNames.IntArray, custom=True)
+        attr.Set(Vt.IntArray.FromNumpy(np.ascontiguousarray(values.astype(np.int32).ravel())))
+    elif trailing == (3,):
+        attr = prim.CreateAttribute(name, Sdf.ValueTypeNames.Double3Array, custom=True)
+        attr.Set(Vt.Vec3dArray.FromNumpy(np.ascontiguousarray(values, dtype=np.float64)))
+    else:
+        attr = prim.CreateAttribute(name, Sdf.ValueTypeNames.DoubleArray, custom=True)
+        attr.Set(Vt.DoubleArray.FromNumpy(np.ascontiguousarray(values, dtype=np.float64).ravel()))
+    if len(trailing) > 1 or (trailing and trailing != (3,)):
+        attr.SetCustomDataByKey(SHAPE_KEY, Vt.IntArray([int(d) for d in trailing]))
+    return attr
 
 
 def _curves(stage, prim_path: str, points, offsets, radius: float, color) -> UsdGeom.BasisCurves:
@@ -228,7 +450,11 @@ def _write_contacts(stage, arrays: dict, radius: float) -> None:
     pv = UsdGeom.PrimvarsAPI(prim)
     for key in CONTACT_KEYS:
         if key in arrays and len(arrays[key]) == len(points):
-            _primvar(pv, key, np.asarray(arrays[key]), UsdGeom.Tokens.vertex, double=True)
+            value = np.asarray(arrays[key])
+            if value.dtype.kind in "iub":  # strand ids: int primvars, DCCs read them
+                _primvar(pv, key, value, UsdGeom.Tokens.vertex)
+            else:
+                _exact(prim.GetPrim(), key, value)
     _primvar(pv, "contact_force_world", fields.contact_forces_world(arrays), UsdGeom.Tokens.vertex)
 
 
@@ -264,6 +490,9 @@ def read_usd(path, scale: float = 1.0, up: str = "y", repair: bool = False, *, p
     meters = UsdGeom.GetStageMetersPerUnit(stage) if UsdGeom.StageHasAuthoredMetersPerUnit(stage) else float(scale)
     if stage.HasAuthoredMetadata("upAxis"):
         up = str(UsdGeom.GetStageUpAxis(stage)).lower()
+        ours = dict(stage.GetRootLayer().customLayerData.get("groomtool", {}))
+        if str(ours.get("up", "")).lstrip("-") in ("x", "y", "z"):
+            up = str(ours["up"])  # ours: the signed direction (USD's upAxis is only Y or Z)
     strands, counts, kinds = [], [], set()
     for p in chosen:
         pts, cnt = _curve_points(p, source)
@@ -345,7 +574,12 @@ def _primvar_array(primvar, offsets=None):
     attr = primvar.GetAttr()
     k = primvar.GetElementSize() if primvar.GetInterpolation() != UsdGeom.Tokens.constant else 1
     shape = attr.GetCustomDataByKey(SHAPE_KEY)
-    if shape is not None:
+    if attr.GetCustomDataByKey(ENCODING_KEY) == "quaternion":
+        q = np.asarray(arr, dtype=np.float64).reshape(-1, 4)
+        live = np.any(q != 0, axis=1)  # padding (tips, roots) stays zero
+        arr = np.zeros((len(q), 3, 3))
+        arr[live] = quaternions_to_frames(q[live])
+    elif shape is not None:
         arr = arr.reshape((-1,) + tuple(int(d) for d in shape))
     elif k > 1 and arr.ndim == 1:
         arr = arr.reshape(-1, k)
@@ -356,6 +590,8 @@ def _primvar_array(primvar, offsets=None):
 
 
 def _groom_primvars(prim, offsets=None) -> dict:
+    """primvars:groom:<key> (float data, unpadded) overridden by the exact groomtool:<key>
+    attributes (schema 2; schema 1 files hold their double data as primvars)."""
     out = {}
     for primvar in UsdGeom.PrimvarsAPI(prim).GetPrimvars():
         name = primvar.GetPrimvarName()
@@ -363,6 +599,17 @@ def _groom_primvars(prim, offsets=None) -> dict:
             value = _primvar_array(primvar, offsets)
             if value is not None:
                 out[name[len(NS):]] = value
+    for attr in prim.GetAttributes():
+        name = attr.GetName()
+        if name.startswith(EXACT) and attr.HasAuthoredValue():
+            value = np.asarray(attr.Get())
+            if value.dtype.kind == "i":
+                value = value.astype(np.int64)
+            shape = attr.GetCustomDataByKey(SHAPE_KEY)
+            if shape is not None:
+                value = value.reshape((-1,) + tuple(int(d) for d in shape))
+            key = name[len(EXACT):]
+            out[key] = np.float64(value) if value.ndim == 0 else value
     return out
 
 
@@ -371,7 +618,7 @@ def _rest_data(stage, prim, offsets: np.ndarray) -> dict:
     contacts and head; material constants come back as scalars."""
     data = _groom_primvars(prim, offsets)
     for key in MATERIAL_KEYS:
-        if key in data and len(data[key]):
+        if key in data and np.ndim(data[key]) and len(data[key]):
             data[key] = np.float64(data[key][0])
     if "gravity" in data:
         data["gravity"] = data["gravity"].reshape(3)
