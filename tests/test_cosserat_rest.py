@@ -167,3 +167,98 @@ def test_point_forces_keep_force_and_moment():
         dr.point_force_nodes(([0], [18], np.ones((1, 3))), ro, arc, at="node")
     with pytest.raises(dr.RestDataError):
         dr.point_force_nodes(([S], [0.0], np.ones((1, 3))), ro, arc)
+
+
+# ---------------------------------------------------------------------------------------- per-strand stiffness
+STIFF_PF = ([0, 1, 3, 3], [0.01, 0.07, 0.0, 0.19], np.array([[0, 2e-6, 0], [1e-6, 0, -1e-6],
+                                                              [5e-6, 5e-6, 5e-6], [0, 0, 3e-6]]))
+ARRAYS = ("rod_points", "rod_offsets", "cosserat_directors", "cosserat_rest_kappa", "cosserat_rest_sigma",
+          "cosserat_rest_lengths", "cosserat_rest_voronoi_lengths", "node_forces", "node_mass",
+          "cosserat_internal_stress", "cosserat_internal_couple")
+
+
+def scaled(material, f):
+    return Material(young_modulus=f * material.young_modulus, shear_modulus=f * material.G,
+                    radius=material.radius, density=material.density)
+
+
+@pytest.mark.parametrize("segments", [None, 9])
+def test_per_strand_stiffness_balance(segments):
+    """Strand s solved with f_s E, f_s G: PyElastica's balance with the per-strand material vanishes
+    at round-off, not with the unscaled one; each strand equals its own solve with Material(f_s E,
+    f_s G); loads (hence stress and couple) do not depend on the stiffness, the rest strains do."""
+    P, off = groom()
+    f = np.random.default_rng(5).uniform(1.0, 40.0, len(off) - 1)
+    d = cosserat_rest_data(P, off, MAT, G, point_forces=STIFF_PF, segments=segments, stiffness_factor=f)
+    d1 = cosserat_rest_data(P, off, MAT, G, point_forces=STIFF_PF, segments=segments)
+    r = d["cosserat_residual"]
+    assert r["force_rel"] < 1e-12 and r["torque_rel"] < 1e-12, r
+    np.testing.assert_array_equal(d["cosserat_stiffness_factor"], f)
+    args = (d["rod_points"], d["rod_offsets"], d["cosserat_directors"], d["cosserat_rest_kappa"],
+            d["cosserat_rest_sigma"], d["cosserat_rest_lengths"], d["node_forces"], MAT)
+    fres, tres = cosserat_static_residual(*args, stiffness_factor=f)
+    couple = np.abs(d["cosserat_internal_couple"]).max()
+    assert np.abs(tres).max() < 1e-12 * couple and np.abs(fres).max() < 1e-12 * np.abs(d["node_forces"]).max()
+    # with the unscaled material every internal stress and couple is 1 / f_s of the balancing one:
+    # the torque balance is homogeneous in them, the force balance against the loads is not
+    fres_unscaled, _ = cosserat_static_residual(*args)
+    assert np.abs(fres_unscaled).max() > 0.5 * np.abs(d["node_forces"]).max()
+    np.testing.assert_array_equal(d["cosserat_internal_couple"], d1["cosserat_internal_couple"])
+    np.testing.assert_array_equal(d["cosserat_internal_stress"], d1["cosserat_internal_stress"])
+    ro, ioff, eoff = d["rod_offsets"], dr.interior_offsets(d["rod_offsets"]), dr.edge_offsets(d["rod_offsets"])
+    point = d["node_forces"] - d["node_mass"][:, None] * G      # the point loads, per rod node
+    kappa_all = pyelastica_kappa(d["cosserat_directors"], d["cosserat_rest_voronoi_lengths"], ro)
+    for s in range(len(off) - 1):
+        n = ro[s + 1] - ro[s]
+        one = cosserat_rest_data(d["rod_points"][ro[s]:ro[s + 1]], [0, n], scaled(MAT, f[s]), G,
+                                 point_forces=(np.zeros(n, int), np.arange(n), point[ro[s]:ro[s + 1]]),
+                                 point_force_at="node")
+        for key, sl in (("cosserat_rest_kappa", slice(ioff[s], ioff[s + 1])),
+                        ("cosserat_rest_sigma", slice(eoff[s], eoff[s + 1]))):
+            np.testing.assert_allclose(d[key][sl], one[key], rtol=1e-12, atol=1e-12 * np.abs(one[key]).max())
+        # the rest strain departs from the groom's strain as 1 / f_s
+        k = slice(ioff[s], ioff[s + 1])
+        kappa = kappa_all[k]
+        np.testing.assert_allclose((kappa - d["cosserat_rest_kappa"][k]) * f[s],
+                                   kappa - d1["cosserat_rest_kappa"][k], rtol=1e-9,
+                                   atol=1e-12 * np.abs(kappa).max())
+
+
+def test_stiffness_factor_of_ones_is_bit_identical():
+    P, off = groom()
+    for segments in (None, 9):
+        a = cosserat_rest_data(P, off, MAT, G, point_forces=STIFF_PF, segments=segments)
+        b = cosserat_rest_data(P, off, MAT, G, point_forces=STIFF_PF, segments=segments,
+                               stiffness_factor=np.ones(len(off) - 1))
+        for key in ARRAYS + ("cosserat_stiffness_factor",):
+            np.testing.assert_array_equal(a[key], b[key], err_msg=key)
+        assert a["cosserat_residual"] == b["cosserat_residual"]
+        np.testing.assert_array_equal(a["cosserat_stiffness_factor"], 1.0)
+
+
+def test_uniform_stiffness_factor_is_the_scaled_material():
+    """f for every strand = Material(young_modulus=f E, shear_modulus=f G), to round-off."""
+    P, off = groom()
+    for f in (2.5, 100.0):
+        a = cosserat_rest_data(P, off, MAT, G, point_forces=STIFF_PF, stiffness_factor=np.full(len(off) - 1, f))
+        b = cosserat_rest_data(P, off, scaled(MAT, f), G, point_forces=STIFF_PF)
+        for key in ARRAYS:
+            np.testing.assert_allclose(a[key], b[key], rtol=1e-13, atol=1e-13 * np.abs(b[key]).max(), err_msg=key)
+        # and differs from the unscaled material
+        c = cosserat_rest_data(P, off, MAT, G, point_forces=STIFF_PF)
+        change = np.abs(a["cosserat_rest_kappa"] - c["cosserat_rest_kappa"]).max()
+        assert change > 1e-3 * np.abs(c["cosserat_rest_kappa"]).max()
+
+
+@pytest.mark.parametrize("bad, match", [(np.ones(3), "shape"), (np.ones((4, 1)), "shape"), (2.0, "shape"),
+                                        ([1, 0, 1, 1], "positive"), ([1, -2, 1, 1], "positive"),
+                                        ([1, np.nan, 1, 1], "finite"), ([1, 1, np.inf, 1], "finite")])
+def test_stiffness_factor_is_validated(bad, match):
+    P, off = groom()
+    with pytest.raises(dr.RestDataError, match=match):
+        cosserat_rest_data(P, off, MAT, G, stiffness_factor=bad)
+    d = cosserat_rest_data(P, off, MAT, G)
+    with pytest.raises(dr.RestDataError, match=match):
+        cosserat_static_residual(d["rod_points"], d["rod_offsets"], d["cosserat_directors"], d["cosserat_rest_kappa"],
+                                 d["cosserat_rest_sigma"], d["cosserat_rest_lengths"], d["node_forces"], MAT,
+                                 stiffness_factor=bad)

@@ -31,7 +31,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from .discrete import edge_offsets, interior_offsets, matvec, node_forces, prepare_rods
+from .discrete import edge_offsets, interior_offsets, matvec, node_forces, prepare_rods, strand_stiffness_factors
 
 SHEAR_ALPHA = 27.0 / 28.0  # PyElastica's Timoshenko shear correction (Kaneko 1975, nu = 0.5)
 
@@ -127,9 +127,12 @@ def _cosserat_statics(F, Q, kappa, rest_len, rest_vor, voff, eoff, ioff, n_out, 
 
 
 @numba.njit(cache=True)
-def _residual_kernel(x, Q, kappa, rest_kappa, rest_sigma, rest_len, rest_vor, B, Sd, voff, eoff, ioff,
+def _residual_kernel(x, Q, kappa, rest_kappa, rest_sigma, rest_len, rest_vor, B, Sd, fac, voff, eoff, ioff,
                      fres, tres):
+    """B (3,), Sd (3,): the material's stiffnesses; strand s uses fac[s] B and fac[s] Sd."""
     e = np.empty(3)
+    bs = np.empty(3)
+    ss = np.empty(3)
     n = np.empty(3)
     qt = np.empty(3)
     ta = np.empty(3)
@@ -137,6 +140,9 @@ def _residual_kernel(x, Q, kappa, rest_kappa, rest_sigma, rest_len, rest_vor, B,
     for s in range(len(voff) - 1):
         v0, e0, i0 = voff[s], eoff[s], ioff[s]
         ne = eoff[s + 1] - e0
+        for r in range(3):
+            bs[r] = B[r] * fac[s]
+            ss[r] = Sd[r] * fac[s]
         for k in range(ne):
             je = e0 + k
             va = v0 + k
@@ -146,7 +152,7 @@ def _residual_kernel(x, Q, kappa, rest_kappa, rest_sigma, rest_len, rest_vor, B,
             for r in range(3):
                 qe = Q[je, r, 0] * e[0] + Q[je, r, 1] * e[1] + Q[je, r, 2] * e[2]
                 sig = qe / rest_len[je] - (1.0 if r == 2 else 0.0)      # sigma = Q e / l^ - e3
-                n[r] = Sd[r] * (sig - rest_sigma[je, r])                # n = S (sigma - sigma0)
+                n[r] = ss[r] * (sig - rest_sigma[je, r])                # n = S (sigma - sigma0)
                 qt[r] = qe / le
             for c in range(3):
                 Nc = Q[je, 0, c] * n[0] + Q[je, 1, c] * n[1] + Q[je, 2, c] * n[2]   # Q^T n
@@ -158,7 +164,7 @@ def _residual_kernel(x, Q, kappa, rest_kappa, rest_sigma, rest_len, rest_vor, B,
         for k in range(ne - 1):
             j = i0 + k
             for r in range(3):
-                ta[r] = B[r] * (kappa[j, r] - rest_kappa[j, r])        # tau = B (kappa - kappa0)
+                ta[r] = bs[r] * (kappa[j, r] - rest_kappa[j, r])       # tau = B (kappa - kappa0)
             h = 0.5 * rest_vor[j]
             v[0] = h * (kappa[j, 1] * ta[2] - kappa[j, 2] * ta[1])      # (kappa x tau) D^ / 2
             v[1] = h * (kappa[j, 2] * ta[0] - kappa[j, 0] * ta[2])
@@ -172,46 +178,56 @@ def _residual_kernel(x, Q, kappa, rest_kappa, rest_sigma, rest_len, rest_vor, B,
 
 
 def cosserat_static_residual(rod_points, rod_offsets, directors, rest_kappa, rest_sigma, rest_lengths,
-                             forces, material, kappa=None):
+                             forces, material, kappa=None, *, stiffness_factor=None):
     """PyElastica's static force and torque balance, re-evaluated term by term (independent of the
     solve; ``kappa`` = :func:`pyelastica_kappa` of the same directors, to skip recomputing it):
 
         force on node v:      F_v + Delta(Q^T n)_v,             n = S (Q e / l^ - e3 - sigma0)
         torque on element k:  Delta(tau)_k + A(kappa x tau D^)_k + (Q_k t_k x n_k) l^_k
 
+    ``stiffness_factor`` (S,): strand s has moduli f_s E, f_s G, i.e. B and S multiplied by f_s
+    (None: all ones, see :func:`cosserat_rest_data`).
+
     Returns (force residual (V, 3), torque residual (E, 3)) with the clamped node 0 and element 0 of
     every strand zeroed; a solved export makes both vanish to round-off.
     """
     B, Sd = cosserat_stiffness(material)
+    fac = strand_stiffness_factors(stiffness_factor, len(rod_offsets) - 1)
     rest_vor = voronoi_lengths(rest_lengths, rod_offsets)
     kappa = pyelastica_kappa(directors, rest_vor, rod_offsets) if kappa is None else kappa
     fres = np.array(forces, dtype=np.float64, copy=True)
     tres = np.zeros((len(rest_lengths), 3))
     _residual_kernel(np.ascontiguousarray(rod_points), np.ascontiguousarray(directors), kappa,
                      np.ascontiguousarray(rest_kappa), np.ascontiguousarray(rest_sigma), rest_lengths, rest_vor,
-                     B, Sd, rod_offsets, edge_offsets(rod_offsets), interior_offsets(rod_offsets), fres, tres)
+                     B, Sd, fac, rod_offsets, edge_offsets(rod_offsets), interior_offsets(rod_offsets), fres, tres)
     return fres, tres
 
 
 def cosserat_rest_data(points, offsets, material, gravity, point_forces=None, segments=None, *,
-                       point_force_at: str = "arc_length", root_normal=None, rod: dict | None = None) -> dict:
+                       point_force_at: str = "arc_length", root_normal=None, rod: dict | None = None,
+                       stiffness_factor=None) -> dict:
     """Rest data making the groomed polyline an exact static equilibrium of PyElastica's rod.
 
     points (V, 3) m, offsets (S + 1,); gravity (3,) m/s^2; point_forces = (strand (K,), where (K,),
     force (K, 3) N) with ``where`` an arc length along the input polyline (``point_force_at=
     "arc_length"``) or a rod-node index (``"node"``), see :func:`discrete.point_force_nodes`;
     segments: None keeps the input vertices, N resamples every strand to N equal-arc-length edges.
+    stiffness_factor: None, or (S,) positive finite factors f_s: strand s is solved with Young's and
+    shear moduli f_s E and f_s G (B and S multiplied by f_s, so its rest strains follow from
+    kappa0 = kappa - (f_s B)^-1 tau and sigma0 = sigma - (f_s S)^-1 n); None = all ones.
 
     Returns rod_points (V', 3), rod_offsets (S + 1,), cosserat_directors (E, 3, 3) rows d1 d2 d3,
     cosserat_rest_kappa (V' - 2S, 3) 1/m, cosserat_rest_sigma (E, 3), cosserat_rest_lengths (E,) m,
     cosserat_rest_voronoi_lengths (V' - 2S,) m, node_forces (V', 3) N (the loads solved for, gravity
     on lumped masses + point loads), node_mass (V',) kg, cosserat_internal_stress (E, 3) N and
-    cosserat_internal_couple (V' - 2S, 3) N m (material frame), and a ``cosserat_residual`` dict.
+    cosserat_internal_couple (V' - 2S, 3) N m (material frame), cosserat_stiffness_factor (S,) (the
+    factors solved with, read by :func:`pyelastica_rod`) and a ``cosserat_residual`` dict.
     """
     rod = prepare_rods(points, offsets, segments, root_normal) if rod is None else rod
     rod_points, rod_offsets, rod_arc = rod["rod_points"], rod["rod_offsets"], rod["rod_arc"]
     e, rest_len, _ = rod["geometry"]
     Q = rod["frames"]
+    fac = strand_stiffness_factors(stiffness_factor, len(rod_offsets) - 1)
     B, Sd = cosserat_stiffness(material)
     rest_vor = voronoi_lengths(rest_len, rod_offsets)
     kappa = pyelastica_kappa(Q, rest_vor, rod_offsets)
@@ -222,10 +238,13 @@ def cosserat_rest_data(points, offsets, material, gravity, point_forces=None, se
     tau = np.zeros((len(kappa), 3))
     _cosserat_statics(F, Q, kappa, rest_len, rest_vor, rod_offsets, eoff, ioff, n, tau)
     sigma = matvec(Q, e) / rest_len[:, None] - np.array([0.0, 0.0, 1.0])
-    rest_sigma = sigma - n / Sd
-    rest_kappa = kappa - tau / B
+    # strand s: B_s = f_s B at its Voronoi nodes, S_s = f_s S at its elements
+    Sd_e = Sd[None, :] * np.repeat(fac, np.diff(eoff))[:, None]
+    B_i = B[None, :] * np.repeat(fac, np.diff(ioff))[:, None]
+    rest_sigma = sigma - n / Sd_e
+    rest_kappa = kappa - tau / B_i
     fres, tres = cosserat_static_residual(rod_points, rod_offsets, Q, rest_kappa, rest_sigma, rest_len,
-                                          F, material, kappa)
+                                          F, material, kappa, stiffness_factor=fac)
     free = np.ones(len(F), dtype=bool)
     free[rod_offsets[:-1]] = False
     moment_scale = np.linalg.norm(n[:, :2] * rest_len[:, None])     # |e3 x n| l^
@@ -246,22 +265,31 @@ def cosserat_rest_data(points, offsets, material, gravity, point_forces=None, se
         "node_mass": mass,
         "cosserat_internal_stress": n,
         "cosserat_internal_couple": tau,
+        "cosserat_stiffness_factor": fac,
         "cosserat_residual": residual,
     }
 
 
 def pyelastica_rod(data: dict, strand: int, material, *, inertia_scale: float = 1.0,
-                   rest_sigma: bool = True):
+                   rest_sigma: bool = True, stiffness_factor: float | None = None):
     """Build ``elastica.CosseratRod`` for one strand of :func:`cosserat_rest_data` output.
 
     Positions, directors, rest_kappa, rest_sigma (zero if ``rest_sigma=False``) go in as given; the
-    rest lengths follow from the positions (PyElastica computes them), shear modulus = material.G.
+    rest lengths follow from the positions (PyElastica computes them).  Young's and shear moduli are
+    f material.young_modulus and f material.G, with f = ``stiffness_factor`` if given, else the
+    strand's ``data["cosserat_stiffness_factor"]`` (the factor its rest data was solved with), else 1.
     ``inertia_scale`` multiplies the mass second moment of inertia: it changes the rotational
     dynamics only (not the equilibrium) and lifts the explicit-step limit set by shear-rotation
     modes, omega^2 ~ 4 alpha G / (rho r^2 inertia_scale).
     """
     import elastica as ea
 
+    if stiffness_factor is None:
+        stored = data.get("cosserat_stiffness_factor")
+        stiffness_factor = 1.0 if stored is None else float(stored[strand])
+    f = float(stiffness_factor)
+    if not (np.isfinite(f) and f > 0.0):
+        raise ValueError(f"stiffness_factor must be positive and finite, got {stiffness_factor}")
     off = data["rod_offsets"]
     v0, v1 = int(off[strand]), int(off[strand + 1])
     e0, e1 = v0 - strand, v1 - strand - 1
@@ -276,7 +304,7 @@ def pyelastica_rod(data: dict, strand: int, material, *, inertia_scale: float = 
     length = float(np.sum(data["cosserat_rest_lengths"][e0:e1]))
     rod = ea.CosseratRod.straight_rod(
         n, pos[:, 0].copy(), dirs[2, :, 0].copy(), dirs[0, :, 0].copy(), length, material.radius,
-        material.density, youngs_modulus=material.young_modulus, shear_modulus=material.G,
+        material.density, youngs_modulus=f * material.young_modulus, shear_modulus=f * material.G,
         position=pos, directors=dirs, rest_kappa=kappa0, rest_sigma=sigma0,
     )
     if inertia_scale != 1.0:

@@ -37,12 +37,28 @@ from .discrete import (
     lumped_masses,
     point_force_nodes,
     prepare_rods,
+    strand_stiffness_factors,
 )
 
 
 def der_stiffness(material):
     """(EA, EI, GJ) with J = 2I (circular section)."""
     return (material.young_modulus * material.area, material.bending_stiffness, material.twist_stiffness)
+
+
+def _factor_arrays(offsets, stiffness_factor):
+    """The strand factors f_s (validated; None: ones) repeated per edge (E,) and per interior vertex."""
+    fac = strand_stiffness_factors(stiffness_factor, len(offsets) - 1)
+    counts = np.diff(offsets)
+    return np.repeat(fac, counts - 1), np.repeat(fac, counts - 2)
+
+
+def der_stiffness_arrays(material, offsets, stiffness_factor=None):
+    """Per-strand stiffnesses spread over the ragged layout: EA per edge (E,), EI and GJ per interior
+    vertex (V - 2S,), each the material's value times its strand's factor f_s (None: all ones)."""
+    EA, EI, GJ = der_stiffness(material)
+    fe, fi = _factor_arrays(offsets, stiffness_factor)
+    return EA * fe, EI * fi, GJ * fi
 
 
 def _pairs(offsets):
@@ -142,16 +158,19 @@ def der_voronoi(rest_lengths, offsets):
     return 0.5 * (rest_lengths[a] + rest_lengths[b])
 
 
-def der_energy(points, offsets, m1, rest_lengths, rest_kappa, rest_twist, material) -> float:
-    """E = stretching + bending + twisting (module docstring), J."""
+def der_energy(points, offsets, m1, rest_lengths, rest_kappa, rest_twist, material, *,
+               stiffness_factor=None) -> float:
+    """E = stretching + bending + twisting (module docstring), J.  ``stiffness_factor`` (S,): strand s
+    has EA, EI, GJ multiplied by f_s (None: all ones)."""
     EA, EI, GJ = der_stiffness(material)
+    fe, fi = _factor_arrays(offsets, stiffness_factor)
     J = der_strain_jacobian(points, offsets, m1)
     D = der_voronoi(rest_lengths, offsets)
     strain = J["lengths"] / rest_lengths - 1.0
     dk = J["kappa"] - rest_kappa
     dm = J["twist"] - rest_twist
-    return float(0.5 * EA * np.sum(strain**2 * rest_lengths)
-                 + np.sum((EI * np.sum(dk**2, axis=1) + GJ * dm**2) / (2.0 * D)))
+    return float(0.5 * EA * np.sum(fe * strain**2 * rest_lengths)
+                 + np.sum(fi * (EI * np.sum(dk**2, axis=1) + GJ * dm**2) / (2.0 * D)))
 
 
 @numba.njit(cache=True)
@@ -188,14 +207,16 @@ def der_assemble_gradient(J, offsets, w, y, z):
     return gx, gt
 
 
-def der_gradient(points, offsets, m1, rest_lengths, rest_kappa, rest_twist, material, J=None):
+def der_gradient(points, offsets, m1, rest_lengths, rest_kappa, rest_twist, material, J=None, *,
+                 stiffness_factor=None):
     """(dE/dx (V, 3) N, dE/dtheta (E,) N m) of :func:`der_energy` (frames time-parallel transported).
-    ``J``: a :func:`der_strain_jacobian` of the same state, to skip recomputing it."""
-    EA, EI, GJ = der_stiffness(material)
+    ``J``: a :func:`der_strain_jacobian` of the same state, to skip recomputing it;
+    ``stiffness_factor`` (S,): per-strand factors on EA, EI, GJ (None: all ones)."""
+    EA, EI, GJ = der_stiffness_arrays(material, offsets, stiffness_factor)
     J = der_strain_jacobian(points, offsets, m1) if J is None else J
     D = der_voronoi(rest_lengths, offsets)
     w = EA * (J["lengths"] / rest_lengths - 1.0)
-    y = EI * (J["kappa"] - rest_kappa) / D[:, None]
+    y = EI[:, None] * (J["kappa"] - rest_kappa) / D[:, None]
     z = GJ * (J["twist"] - rest_twist) / D
     return der_assemble_gradient(J, offsets, w, y, z)
 
@@ -262,15 +283,17 @@ def _der_solve(f, tq, t, A, C, a, c, gm, gp, voff, eoff, ioff, w, y, z):
 
 
 def der_residual(points, offsets, m1, rest_lengths, rest_kappa, rest_twist, material, f, tq=None,
-                 tension=None, J=None):
+                 tension=None, J=None, *, stiffness_factor=None):
     """Free-dof residual of grad E = f_ext (clamped root: x_0, x_1, theta^0 excluded).
 
-    ``tension`` (E,) adds constraint forces sum_j tension_j d|e^j|/dx (inextensible rods).
+    ``tension`` (E,) adds constraint forces sum_j tension_j d|e^j|/dx (inextensible rods);
+    ``stiffness_factor`` (S,): per-strand factors on EA, EI, GJ (None: all ones).
 
     Returns {"force_rel": ||dE/dx - f|| / ||f||, "torque_rel": ||dE/dtheta - tq|| / (||f|| L_mean),
     "per_strand_max": max over strands of the per-strand force_rel}.
     """
-    gx, gt = der_gradient(points, offsets, m1, rest_lengths, rest_kappa, rest_twist, material, J)
+    gx, gt = der_gradient(points, offsets, m1, rest_lengths, rest_kappa, rest_twist, material, J,
+                          stiffness_factor=stiffness_factor)
     if tension is not None:
         e0 = edge_start_vertices(offsets)
         wt = tension[:, None] * (points[e0 + 1] - points[e0]) / np.linalg.norm(
@@ -302,14 +325,16 @@ def der_residual(points, offsets, m1, rest_lengths, rest_kappa, rest_twist, mate
 
 def der_rest_data(points, offsets, material, gravity, point_forces=None, segments=None, *,
                   point_force_at: str = "arc_length", root_normal=None, stretching: str = "stiff",
-                  mass_iterations: int = 3, rod: dict | None = None) -> dict:
+                  mass_iterations: int = 3, rod: dict | None = None, stiffness_factor=None) -> dict:
     """Rest lengths, rest material curvatures and rest twists making the groom a DER equilibrium.
 
     Arguments as :func:`groomtool.rods.cosserat.cosserat_rest_data`.  ``stretching="stiff"`` solves
     the rest lengths (stretch energy EA/2 (|e|/e~ - 1)^2 e~) and computes vertex masses
     rho S (e~_{i-1} + e~_i) / 2 from them (a fixed point, ``mass_iterations`` passes; the change is
     ~1e-6 relative); ``"inextensible"`` keeps e~ = groomed lengths and reports the edge tensions
-    ``der_tension`` (the constraint forces) instead.
+    ``der_tension`` (the constraint forces) instead.  ``stiffness_factor``: None, or (S,) positive
+    finite factors f_s: strand s is solved with moduli f_s E, f_s G (EA, EI, GJ times f_s, so
+    e~ = |e| / (1 + w / (f_s EA)), kappa~ = kappa - D y / (f_s EI), m~ = m - D z / (f_s GJ)).
 
     Returns rod_points (V', 3), rod_offsets (S + 1,), der_rest_lengths (E,) m, der_rest_kappa
     (V' - 2S, 2) (dimensionless, integrated over D_i), der_rest_twist (V' - 2S,) rad (integrated),
@@ -321,7 +346,7 @@ def der_rest_data(points, offsets, material, gravity, point_forces=None, segment
     rod = prepare_rods(points, offsets, segments, root_normal) if rod is None else rod
     rod_points, rod_offsets, rod_arc = rod["rod_points"], rod["rod_offsets"], rod["rod_arc"]
     geometry, frames = rod["geometry"], rod["frames"]
-    EA, EI, GJ = der_stiffness(material)
+    EA, EI, GJ = der_stiffness_arrays(material, rod_offsets, stiffness_factor)   # per edge / interior vertex
     m1 = np.ascontiguousarray(frames[:, 0])
     J = der_strain_jacobian(rod_points, rod_offsets, m1, geometry)
     length = J["lengths"]
@@ -344,12 +369,12 @@ def der_rest_data(points, offsets, material, gravity, point_forces=None, segment
     if not (mindet > 1e-12 and np.all(np.isfinite(w)) and np.all(np.isfinite(y))):
         raise RestDataError(f"DER system singular (smallest normalised pivot {mindet:.1e}): a near-folded edge pair")
     D = der_voronoi(rest_len, rod_offsets)
-    rest_kappa = J["kappa"] - D[:, None] * y / EI
+    rest_kappa = J["kappa"] - D[:, None] * y / EI[:, None]
     rest_twist = J["twist"] - D * z / GJ
     mass = lumped_masses(rest_len, rod_offsets, material.linear_density)
     F = mass[:, None] * g + Fp
     residual = der_residual(rod_points, rod_offsets, m1, rest_len, rest_kappa, rest_twist, material, F,
-                            tension=None if stretching == "stiff" else w, J=J)
+                            tension=None if stretching == "stiff" else w, J=J, stiffness_factor=stiffness_factor)
     residual["min_pivot"] = float(mindet)
     return {
         "rod_points": rod_points,

@@ -89,6 +89,26 @@ def check_strands(points: np.ndarray, offsets: np.ndarray) -> tuple[np.ndarray, 
     return points, offsets
 
 
+def strand_stiffness_factors(stiffness_factor, n_strands: int) -> np.ndarray:
+    """Per-strand stiffness factors f_s, (S,) float64: None gives all ones.
+
+    Strand s then has Young's and shear moduli f_s E and f_s G, so every stiffness of the strand
+    (bend, twist, shear, stretch) is multiplied by f_s.  Raises :class:`RestDataError` unless the
+    input is an (S,) array of positive finite numbers.
+    """
+    if stiffness_factor is None:
+        return np.ones(n_strands)
+    f = np.asarray(stiffness_factor, dtype=np.float64)
+    if f.shape != (n_strands,):
+        raise RestDataError(f"stiffness_factor must have shape ({n_strands},) (one factor per strand), "
+                            f"got shape {f.shape}")
+    bad = np.flatnonzero(~(np.isfinite(f) & (f > 0.0)))
+    if bad.size:
+        raise RestDataError(f"stiffness_factor must be positive and finite: strands {bad[:10].tolist()} "
+                            f"have {f[bad[:10]].tolist()}")
+    return np.ascontiguousarray(f)
+
+
 # ---------------------------------------------------------------------------------------- resampling
 def arc_lengths(points: np.ndarray, offsets: np.ndarray) -> np.ndarray:
     """(V,) polyline arc length s of every vertex from its strand's root."""
