@@ -74,11 +74,11 @@ def wavy_3d(n=41, length=0.2):
     return np.stack([x, 0.01 * np.sin(40 * x), 0.005 * np.cos(25 * x)], axis=1)
 
 
-def export(strand, point_forces=None, segments=None):
+def export(strand, point_forces=None, segments=None, stiffness_factor=None):
     """Rest data of one strand, resampled to about DX edges unless ``segments`` is given."""
     n = segments or max(2, int(round(polyline_length(strand) / DX)))
     return cosserat_rest_data(strand, [0, len(strand)], MAT, G, point_forces=point_forces, segments=n,
-                              point_force_at="node")
+                              point_force_at="node", stiffness_factor=stiffness_factor)
 
 
 def cases(shared_dir):
@@ -173,8 +173,39 @@ def test_static_balance_in_pyelastica(shared_dir, capsys):
         print("\n".join(lines))
 
 
+def test_static_balance_stiffened_strand(shared_dir):
+    """A strand solved with moduli f E, f G (``stiffness_factor``): the rod that ``pyelastica_rod``
+    builds from its data (the factor read from the data) balances the loads in PyElastica's own
+    equations; the same rest data in a rod of the unscaled material does not."""
+    strands = [("wavy 3D 20 cm", wavy_3d(51))]
+    if shared_dir is not None:
+        strands.append(("USC 00003 #3", list(read_data(shared_dir / "usc" / "cstrands" / "cstrands00003.data")
+                                             .strands())[3]))
+    for name, strand in strands:
+        n = len(strand)
+        pf = ([0, 0], [n // 3, 2 * n // 3], np.array([[0.0, 2e-6, 1e-6], [1e-6, 0.0, -1e-6]]))
+        for f in (3.0, 40.0):
+            data = cosserat_rest_data(strand, [0, n], MAT, G, point_forces=pf, point_force_at="node",
+                                      stiffness_factor=[f])
+            residual = []
+            for rod in (pyelastica_rod(data, 0, MAT), pyelastica_rod(data, 0, MAT, stiffness_factor=1.0)):
+                rod.compute_internal_forces_and_torques(np.float64(0.0))
+                residual.append(rod.internal_forces + data["node_forces"].T)
+                if len(residual) == 1:
+                    assert rod.shear_matrix[2, 2, 0] == pytest.approx(f * MAT.young_modulus * MAT.area, rel=1e-12)
+                    # the stresses' float64 floor is f S eps (PyElastica forms the strains by
+                    # cancellation), the couple does not grow with f: the relative floor grows as f
+                    torque_rel = np.linalg.norm(rod.internal_torques[:, 1:]) / np.linalg.norm(rod.internal_couple)
+                    assert torque_rel < 2e-11 * f, (name, f, torque_rel)
+            # the float64 floor of a nodal force is a few roundings of f EA eps (the axial strain)
+            assert np.abs(residual[0][:, 1:]).max() < 8 * f * MAT.young_modulus * MAT.area * np.finfo(float).eps, name
+            assert np.abs(residual[1][:, 1:]).max() > 0.5 * np.abs(data["node_forces"][1:]).max(), name
+
+
 def test_drift_in_pyelastica(shared_dir, capsys):
-    """0.5 s of damped dynamics: exported rest data < 0.1 mm tip drift, naive rest shape sags > 10 cm."""
+    """0.5 s of damped dynamics: exported rest data < 0.1 mm tip drift, naive rest shape sags > 10 cm.
+    A strand stiffened 4x (data solved and rod built with 4 E, 4 G) stays too, while the same data in
+    a rod of the unscaled material sags by more than 1 mm."""
     runs, names = [], []
     for name, strand, loads in cases(shared_dir):
         data = export(strand, point_forces=loads)
@@ -183,12 +214,22 @@ def test_drift_in_pyelastica(shared_dir, capsys):
             nodal = data["node_forces"] - data["node_mass"][:, None] * G
         runs.append((pyelastica_rod(data, 0, MAT, inertia_scale=INERTIA_SCALE), nodal))
         names.append(name)
+    # stiffened: the axial wave speed and the shear-rotation rate grow as sqrt(f), so the edges are
+    # sqrt(f) DX long and the rotational inertia f times larger, keeping dt = DT stable
+    f = 4.0
+    strand = wavy_3d(41, 0.08)
+    data = export(strand, segments=int(round(polyline_length(strand) / (DX * np.sqrt(f)))), stiffness_factor=[f])
+    runs.append((pyelastica_rod(data, 0, MAT, inertia_scale=f * INERTIA_SCALE), None))
+    names.append("wavy 3D 8 cm, stiffened 4x")
+    control = pyelastica_rod(data, 0, MAT, inertia_scale=INERTIA_SCALE, stiffness_factor=1.0)
     data = export(horizontal())
     runs.append((pyelastica_rod(data, 0, MAT, inertia_scale=INERTIA_SCALE, rest_sigma=False), None))
     names.append("horizontal 20 cm, rest_sigma = 0")
     naive = pyelastica_rod(data, 0, MAT, inertia_scale=INERTIA_SCALE)
     naive.rest_kappa[:] = 0.0   # rest shape = groomed (straight) shape
     naive.rest_sigma[:] = 0.0
+    runs.append((control, None))
+    names.append("stiffened 4x data, unscaled rod")
     runs.append((naive, None))
     names.append("naive: rest = groomed, 20 cm")
     drift = simulate(runs)
@@ -197,6 +238,7 @@ def test_drift_in_pyelastica(shared_dir, capsys):
               f"damping {DAMPING} 1/s):")
         for name, d in zip(names, drift):
             print(f"  {name:36s} {1e3 * d:.3e} mm")
-    for name, d in zip(names[:-1], drift[:-1]):
+    for name, d in zip(names[:-2], drift[:-2]):
         assert d < 1e-4, (name, d)
+    assert drift[-2] > 1e-3
     assert drift[-1] > 0.10
