@@ -248,3 +248,146 @@ def test_directory_is_not_a_groom(tmp_path):
     (tmp_path / "d.obj").mkdir()
     with pytest.raises(GroomError, match="not a regular file"):
         load_groom(tmp_path / "d.obj")
+
+
+# ---------------------------------------------------------------------------- head meshes
+def _mesh_file(tmp_path, name, vertices, faces) -> str:
+    lines = [f"v {x!r} {y!r} {z!r}" for x, y, z in np.asarray(vertices, dtype=float).tolist()]
+    lines += [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in np.asarray(faces).tolist()]
+    return write(tmp_path, name, "\n".join(lines) + "\n")
+
+
+@pytest.fixture(scope="module")
+def sphere():
+    import trimesh
+
+    return trimesh.creation.icosphere(3, radius=0.1)
+
+
+def test_head_with_half_the_faces_reversed_is_repaired(tmp_path, sphere):
+    from groomtool.contact.head import root_gaps
+    from groomtool.io import load_head
+    from groomtool.io.head_validation import HeadWarning
+
+    faces = sphere.faces.copy()
+    faces[::2] = faces[::2, ::-1]
+    path = _mesh_file(tmp_path, "flipped.obj", sphere.vertices, faces)
+    with pytest.warns(HeadWarning, match=r"flipped.obj: 640 of 1280 faces .* reversed"):
+        head = load_head(path)
+    assert head.is_winding_consistent
+    # signed distances as with the intact mesh: points outside positive, inside negative
+    pts = np.array([[0, 0.12, 0], [0, 0.09, 0], [0.105, 0, 0], [0, 0, -0.095]])
+    good = load_head(_mesh_file(tmp_path, "good.obj", sphere.vertices, sphere.faces))
+    assert np.allclose(root_gaps(pts, head), root_gaps(pts, good), atol=1e-12)
+    assert np.all(np.sign(root_gaps(pts, head)) == [1, -1, 1, -1])
+
+
+def test_head_with_a_nan_vertex_is_an_error(tmp_path, sphere):
+    from groomtool.io import load_head
+
+    v = sphere.vertices.copy()
+    v[7] = [np.nan, 0, 0]
+    path = _mesh_file(tmp_path, "nan.obj", v, sphere.faces)
+    with pytest.raises(GroomError, match=r"nan.obj: vertex 7 has a non-finite coordinate"):
+        load_head(path)
+
+
+def test_head_of_degenerate_faces_is_an_error(tmp_path):
+    from groomtool.io import load_head
+
+    v = np.array([[0, 0, 0], [1, 0, 0], [2, 0, 0], [3, 0, 0]], dtype=float)  # all on a line
+    path = _mesh_file(tmp_path, "flat.obj", v, [[0, 1, 2], [1, 2, 3]])
+    with pytest.raises(GroomError, match=r"flat.obj: all 2 faces are degenerate"):
+        load_head(path)
+
+
+def test_head_with_absurd_coordinates_is_an_error(tmp_path, sphere):
+    from groomtool.io import load_head
+
+    path = _mesh_file(tmp_path, "huge.obj", sphere.vertices * 1e30, sphere.faces)
+    with pytest.raises(GroomError, match=r"huge.obj: a coordinate is .* not a head in metres"):
+        load_head(path)
+
+
+def _groom_on(sphere_radius, n=20, seed=0):
+    rng = np.random.default_rng(seed)
+    d = rng.normal(size=(n, 3))
+    d[:, 1] = np.abs(d[:, 1])
+    d /= np.linalg.norm(d, axis=1)[:, None]
+    strands = [r * sphere_radius + np.outer(np.linspace(0, 0.1, 6), r + [0, -0.5, 0]) for r in d]
+    return Groom.from_strands(strands)
+
+
+def test_head_far_too_large_for_the_groom_is_an_error(sphere):
+    from groomtool.io.head_validation import check_head_fits_groom
+
+    groom = _groom_on(0.1)
+    check_head_fits_groom(sphere, groom)  # fits: no error
+    big = sphere.copy()
+    big.apply_scale(100.0)
+    with pytest.raises(GroomError, match=r"different units"):
+        check_head_fits_groom(big, groom)
+
+
+def test_roots_far_from_or_inside_the_head_warn(sphere):
+    import warnings
+
+    from groomtool.io.head_validation import HeadWarning, check_head_fits_groom
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        check_head_fits_groom(sphere, _groom_on(0.1))  # roots on the surface: silent
+    with pytest.warns(HeadWarning, match=r"outside the head"):
+        check_head_fits_groom(sphere, Groom(_groom_on(0.1).points + [0.3, 0, 0], _groom_on(0.1).offsets))
+    with pytest.warns(HeadWarning, match=r"inside the head"):
+        check_head_fits_groom(sphere, _groom_on(0.05))
+
+
+# ---------------------------------------------------------------------------- work bounded by the file size
+def test_ply_huge_counts_fail_fast(tmp_path):
+    head = "ply\nformat {fmt} 1.0\nelement vertex 2\nproperty float x\nproperty float y\nproperty float z\n" \
+           "element face {n}\nproperty list uchar int vertex_indices\nend_header\n"
+    for fmt, body in (("binary_little_endian", np.zeros(6, "<f4").tobytes() + b"\x00" * 40),
+                      ("ascii", b"0 0 0\n1 1 1\n" + b"0\n" * 20)):
+        path = write(tmp_path, "huge.ply", head.format(fmt=fmt, n=2**31 - 1).encode() + body)
+        with pytest.raises(GroomError, match=r"huge.ply: element 'face' declares 2147483647 records"):
+            read_ply(path)
+    with pytest.raises(GroomError, match=r"header line 7: element 'face' has a negative count -1"):
+        read_ply(write(tmp_path, "neg.ply", head.format(fmt="ascii", n=-1).encode() + b"0 0 0\n1 1 1\n"))
+    dup = "ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float x\nproperty float z\nend_header\n"
+    with pytest.raises(GroomError, match=r"header line 5: property 'x' of element 'vertex' declared twice"):
+        read_ply(write(tmp_path, "dup.ply", dup + "0 0 0\n1 1 1\n"))
+
+
+def test_hair_header_asking_for_gigabytes_fails_fast(tmp_path):
+    """No segments array: the hair count alone would allocate 8 bytes per hair."""
+    header = struct.pack("<4sIIIIff3f88s", b"HAIR", 2**31, 2**32 - 1, 2, 2, 1.0, 0.0, 1.0, 1.0, 1.0, b"")
+    path = write(tmp_path, "big.hair", header + np.zeros(36, "<f4").tobytes())
+    with pytest.raises(GroomError, match=r"big.hair: the header declares 2147483648 hairs but the 144 bytes"):
+        read_hair(path)
+
+
+def test_data_strand_count_beyond_the_file_fails_fast(tmp_path):
+    path = write(tmp_path, "big.data", struct.pack("<i", 2**31 - 1) + struct.pack("<i", 2) + np.zeros(6, "<f4").tobytes())
+    with pytest.raises(GroomError, match=r"big.data: 2147483647 strands declared but the file \(32 bytes\)"):
+        read_data(path)
+
+
+def test_obj_v_records_of_different_widths(tmp_path):
+    # 4 numbers (x y z w) then 2: the 2 is an error, not a shift of every later coordinate
+    text = "v 0 0 0 1\nv 1 1\nv 2 2 2\nv 3 3 3\nl 1 2 3 4\n"
+    with pytest.raises(GroomError, match=r"w.obj: line 2: a v record needs 3 numbers, got 'v 1 1'"):
+        read_obj(write(tmp_path, "w.obj", text))
+    # 4 and 6 numbers (w, colours) are read as x y z
+    g = read_obj(write(tmp_path, "c.obj", "v 0 0 0 1\nv 0.1 0 0 0.5 0.5 0.5\nv 0.2 0.1 0\nl 1 2 3\n"))
+    assert np.allclose(g.points, [[0, 0, 0], [0.1, 0, 0], [0.2, 0.1, 0]])
+
+
+def test_absurd_coordinates_are_an_error(tmp_path):
+    groom = Groom.from_strands([s * 1e30 for s in STRANDS])
+    with pytest.raises(GroomError, match=r"strand 0, vertex 1 lies 1e\+28 m from the origin .*wrong --units"):
+        validate(groom)
+    path = tmp_path / "far.data"
+    path.write_bytes(data_bytes([s * 1e30 for s in STRANDS]))
+    with pytest.raises(GroomError, match="far.data: strand 0"):
+        load_groom(path)

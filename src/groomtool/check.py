@@ -14,7 +14,6 @@ mode as the inversion (report.json) unless overridden.  Measured after ``seconds
 
 from __future__ import annotations
 
-import json
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -67,7 +66,9 @@ def load_inverted(outdir) -> InvertedGroom:
     report = {}
     folder = Path(outdir) if Path(outdir).is_dir() else Path(outdir).parent
     if (folder / "report.json").is_file():
-        report = json.loads((folder / "report.json").read_text(encoding="utf-8"))
+        from .io.result_check import read_report
+
+        report = read_report(folder)
     params = report.get("parameters", {})
     contacts = params.get("contacts", "all" if head is not None else "none")
     radius = scalar("contact_radius", None) if "contact_radius" in arrays else None

@@ -48,6 +48,9 @@ def read_hair(path, scale: float = 1.0, up: str = "y", repair: bool = False) -> 
     if not flags & POINTS:
         raise GroomError(f"{source}: the header has no points array (flags {flags:#x}, bit 1 unset)")
     pos = _HEADER.size
+    if not flags & SEGMENTS and 12 * n_hairs > size - pos:  # before allocating n_hairs counts
+        raise GroomError(f"{source}: the header declares {n_hairs} hairs but the {size - pos} bytes after the "
+                         f"header hold at most {(size - pos) // 12} points (every hair has at least one)")
 
     if flags & SEGMENTS:
         if pos + 2 * n_hairs > size:

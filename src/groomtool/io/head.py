@@ -7,23 +7,27 @@ import trimesh
 
 from ..groom import GroomError
 from .common import check_input, unit_scale
+from .head_validation import validate_head
 
 
 def load_head(path, units="m") -> trimesh.Trimesh:
     """Load a head mesh as one ``trimesh.Trimesh`` scaled to metres (``units``: "m", "cm", "mm" or
-    metres per unit).  Scenes are merged into one mesh; no faces or non-finite vertices is an error.
+    metres per unit).  Scenes are merged into one mesh.  Checked by ``validate_head``: no faces,
+    non-finite vertices, absurd coordinates or only degenerate faces are errors; faces wound against
+    their neighbours are reversed with a ``HeadWarning``.
     """
     scale = unit_scale(units)
     path = check_input(path)
     try:
-        mesh = trimesh.load(str(path), force="mesh")
+        raw = trimesh.load(str(path), force="mesh", process=False)
     except Exception as exc:  # trimesh raises many types for unreadable or unknown files
         raise GroomError(f"{path}: cannot read as a mesh: {exc}") from exc
-    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
+    if not isinstance(raw, trimesh.Trimesh) or len(raw.faces) == 0:
         raise GroomError(f"{path}: no triangles: not a mesh (a groom of lines, or an empty file?)")
-    if not np.isfinite(mesh.vertices).all():
-        raise GroomError(f"{path}: the mesh has non-finite vertex coordinates")
-    if scale != 1.0:
-        mesh.apply_scale(scale)
+    vertices = np.asarray(raw.vertices, dtype=np.float64) * scale
+    validate_head(vertices, raw.faces, str(path))  # NaN and index checks before trimesh merges vertices
+    merged = trimesh.Trimesh(vertices, raw.faces, process=True)
+    vertices, faces = validate_head(merged.vertices, merged.faces, str(path))
+    mesh = trimesh.Trimesh(vertices, faces, process=False)
     mesh.metadata["source"] = str(path)
     return mesh

@@ -33,22 +33,25 @@ def _lines(text: str) -> list[str]:
 
 
 def _vertex_coordinates(lines: list[str], at: list[int], source: str) -> np.ndarray:
-    tokens = " ".join([lines[i][2:] for i in at]).split()
-    if len(tokens) == 3 * len(at):
+    """x, y, z of every ``v`` record; more numbers (w, or r g b colours) are ignored, fewer are an error."""
+    rows = [lines[i][2:].split() for i in at]
+    widths = np.fromiter(map(len, rows), dtype=np.int64, count=len(rows))
+    short = np.flatnonzero(widths < 3)
+    if len(short):
+        i = at[int(short[0])]
+        raise GroomError(f"{source}: line {i + 1}: a v record needs 3 numbers, got {lines[i]!r}")
+    if len(rows) and np.any(widths != 3):
+        rows = [r[:3] for r in rows]
+    try:
+        return np.array(rows, dtype=np.float64).reshape(-1, 3)
+    except ValueError:
+        pass  # find the bad line below
+    for row, i in zip(rows, at):
         try:
-            return np.array(tokens, dtype=np.float64).reshape(-1, 3)
-        except ValueError:
-            pass  # find the bad line below
-    coords = np.empty((len(at), 3))
-    for k, i in enumerate(at):
-        fields = lines[i].split()[1:4]
-        try:
-            if len(fields) < 3:
-                raise ValueError
-            coords[k] = [float(x) for x in fields]
+            [float(x) for x in row]
         except ValueError:
             raise GroomError(f"{source}: line {i + 1}: a v record needs 3 numbers, got {lines[i]!r}") from None
-    return coords
+    raise GroomError(f"{source}: a v record holds a value that is not a number")
 
 
 def _raw_indices(records: list[list[str]], at: list[int], source: str) -> np.ndarray:

@@ -54,11 +54,21 @@ def _parse_header(data: bytes, source: str):
                 if fmt not in _FORMATS:
                     raise GroomError(f"{source}: header line {no}: unknown PLY format {fmt!r}")
             elif words[0] == "element":
-                elements.append(_Element(words[1], int(words[2])))
-            elif words[0] == "property" and words[1] == "list":
-                elements[-1].props.append((words[4], _type(words[3], source, no), _type(words[2], source, no)))
+                count = int(words[2])
+                if count < 0:
+                    raise GroomError(f"{source}: header line {no}: element {words[1]!r} has a negative count {count}")
+                if any(el.name == words[1] for el in elements):
+                    raise GroomError(f"{source}: header line {no}: element {words[1]!r} declared twice")
+                elements.append(_Element(words[1], count))
             elif words[0] == "property":
-                elements[-1].props.append((words[2], _type(words[1], source, no), None))
+                if words[1] == "list":
+                    prop = (words[4], _type(words[3], source, no), _type(words[2], source, no))
+                else:
+                    prop = (words[2], _type(words[1], source, no), None)
+                if any(p[0] == prop[0] for p in elements[-1].props):
+                    raise GroomError(f"{source}: header line {no}: property {prop[0]!r} of element "
+                                     f"{elements[-1].name!r} declared twice")
+                elements[-1].props.append(prop)
             else:
                 raise ValueError
         except GroomError:
@@ -74,6 +84,12 @@ def _read_ascii(body: bytes, elements, source: str) -> dict:
     tokens = body.split()
     pos, out = 0, {}
     for el in elements:
+        if el.has_lists and el.count * len(el.props) > len(tokens) - pos:  # a token per property at least
+            raise GroomError(f"{source}: element {el.name!r} declares {el.count} records but the file ends after "
+                             f"{len(tokens) - pos} more values")
+        if not el.props:  # nothing to read
+            out[el.name] = {}
+            continue
         if not el.has_lists:
             k = len(el.props)
             if pos + k * el.count > len(tokens):
@@ -88,9 +104,12 @@ def _read_ascii(body: bytes, elements, source: str) -> dict:
         for record in range(el.count):  # list properties: skip record by record
             for _, _, list_type in el.props:
                 try:
-                    pos += 1 + (int(tokens[pos]) if list_type is not None else 0)
+                    n = int(tokens[pos]) if list_type is not None else 0
                 except (IndexError, ValueError):
                     raise GroomError(f"{source}: element {el.name!r}, record {record}: cut off or malformed") from None
+                if n < 0:
+                    raise GroomError(f"{source}: element {el.name!r}, record {record}: a list of {n} items")
+                pos += 1 + n
         if pos > len(tokens):
             raise GroomError(f"{source}: the file ends inside element {el.name!r}")
     return out
@@ -99,6 +118,13 @@ def _read_ascii(body: bytes, elements, source: str) -> dict:
 def _read_binary(body: bytes, elements, order: str, source: str) -> dict:
     pos, out = 0, {}
     for el in elements:
+        least = sum(np.dtype(p[2] if p[2] is not None else p[1]).itemsize for p in el.props)  # bytes per record
+        if el.has_lists and el.count * least > len(body) - pos:  # before looping over the records
+            raise GroomError(f"{source}: element {el.name!r} declares {el.count} records of at least {least} bytes "
+                             f"but {len(body) - pos} bytes are left")
+        if not el.props:  # nothing to read
+            out[el.name] = {}
+            continue
         if not el.has_lists:
             dtype = np.dtype([(p[0], order + p[1]) for p in el.props])
             if pos + dtype.itemsize * el.count > len(body):
@@ -120,6 +146,8 @@ def _read_binary(body: bytes, elements, order: str, source: str) -> dict:
                 if pos + count_dtype.itemsize > len(body):
                     raise GroomError(f"{source}: the file ends inside element {el.name!r}, record {record}")
                 n = int(np.frombuffer(body, dtype=count_dtype, count=1, offset=pos)[0])
+                if n < 0:
+                    raise GroomError(f"{source}: element {el.name!r}, record {record}: a list of {n} items")
                 pos += count_dtype.itemsize + n * item_size
         if pos > len(body):
             raise GroomError(f"{source}: the file ends inside element {el.name!r}")

@@ -24,6 +24,9 @@ def _strand_counts(data: bytes, source: str) -> np.ndarray:
     (n_strands,) = _INT.unpack_from(data, 0)
     if n_strands < 0:
         raise GroomError(f"{source}: negative strand count {n_strands}: not a USC .data file?")
+    if 4 * n_strands > size - 4:  # each strand has its vertex count at least
+        raise GroomError(f"{source}: {n_strands} strands declared but the file ({size} bytes) holds at most "
+                         f"{(size - 4) // 4}: corrupt, or not a USC .data file")
     counts = np.empty(n_strands, dtype=np.int64)
     pos = 4
     for i in range(n_strands):

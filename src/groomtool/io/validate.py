@@ -13,6 +13,7 @@ from .common import strand_of_vertex
 
 REL_TOL = 1e-9  # a segment this much shorter than its strand's bounding box is a repeated point
 ULPS = 4  # ... and so is one within this many float ULPs of the strand's coordinates as stored
+MAX_COORDINATE_M = 1e4  # a coordinate beyond 10 km is not hair: wrong units or a corrupt file
 
 
 def _plural(n: int, word: str, plural: str = "") -> str:
@@ -30,6 +31,18 @@ def _check_finite(groom: Groom) -> None:
         f"{groom.source}: strand {strand}, vertex {vertex} has a non-finite coordinate "
         f"{tuple(float(x) for x in groom.points[first])} ({_plural(int(bad.sum()), 'such vertex', 'such vertices')} "
         f"in {_plural(n_strands, 'strand')})"
+    )
+
+
+def _check_magnitude(groom: Groom) -> None:
+    big = np.abs(groom.points).max(axis=1) > MAX_COORDINATE_M
+    if not big.any():
+        return
+    first = int(np.argmax(big))
+    strand, vertex = strand_of_vertex(groom.offsets, first)
+    raise GroomError(
+        f"{groom.source}: strand {strand}, vertex {vertex} lies {float(np.abs(groom.points[first]).max()):.3g} m "
+        f"from the origin (more than {MAX_COORDINATE_M:g} m): not a groom in these units (wrong --units?)"
     )
 
 
@@ -82,7 +95,7 @@ def _repeat_error(groom: Groom, rep: np.ndarray, tol: np.ndarray) -> GroomError:
 def validate(groom: Groom, repair: bool = False, stored_dtype=np.float64) -> Groom:
     """Check ``groom``; return it (or, with ``repair``, a repaired copy).
 
-    Always errors: no strands, NaN or infinite coordinates.  Errors unless ``repair``:
+    Always errors: no strands, NaN or infinite coordinates, coordinates beyond 10 km (1e4 m).  Errors unless ``repair``:
     strands with fewer than 2 vertices (dropped) and repeated consecutive points, i.e. segments no
     longer than max(1e-9 x the strand's bounding-box diagonal, 4 ULPs of ``stored_dtype`` at the
     strand's coordinate magnitude) (the later point is dropped, then strands left with fewer than
@@ -94,6 +107,7 @@ def validate(groom: Groom, repair: bool = False, stored_dtype=np.float64) -> Gro
     if groom.n_strands == 0:
         raise GroomError(f"{groom.source}: contains no strands")
     _check_finite(groom)
+    _check_magnitude(groom)
     tol = _tolerances(groom, stored_dtype)
     strand_of = groom.strand_index
     rep = _repeats(groom.points, strand_of, tol)

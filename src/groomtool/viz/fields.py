@@ -44,6 +44,12 @@ def load_arrays(source) -> dict:
         except (OSError, ValueError, zipfile.BadZipFile) as exc:
             raise GroomError(f"{path}: not a readable rest.npz: {exc}") from exc
         arrays["source"] = np.array(str(path))
+        from ..io.result_check import check_result_arrays
+
+        missing = [k for k in REQUIRED if k not in arrays]
+        if missing:
+            raise GroomError(f"{path}: lacks {', '.join(missing)}: not a groomtool result")
+        check_result_arrays(arrays, str(path))
     missing = [k for k in REQUIRED if k not in arrays]
     if missing:
         raise GroomError(f"result arrays lack {', '.join(missing)}: not a groomtool result")
