@@ -11,7 +11,7 @@ import sys
 
 import numpy as np
 
-from . import export_cmd, simulate_cmd, view_cmd
+from . import batch_cmd, export_cmd, simulate_cmd, view_cmd
 
 EXIT_OK, EXIT_USER_ERROR, EXIT_NOT_CONVERGED = 0, 1, 2
 DEFAULT_TOLERANCE_M = 5e-4  # the fit tolerance when --tolerance is not given, whatever --units says
@@ -112,6 +112,7 @@ def build_parser() -> argparse.ArgumentParser:
     simulate_cmd.add_parsers(sub)
     view_cmd.add_parser(sub)
     export_cmd.add_parser(sub)
+    batch_cmd.add_parser(sub, inv)
     return parser
 
 
@@ -237,6 +238,7 @@ def cmd_example(args) -> int:
 COMMANDS = {"invert": cmd_invert, "info": cmd_info, "example": cmd_example,
             "view": view_cmd.cmd_view, "export": export_cmd.cmd_export,
             "simulate": simulate_cmd.cmd_simulate, "check": simulate_cmd.cmd_check}
+COMMANDS["batch"] = batch_cmd.cmd_batch
 
 
 def main(argv=None) -> int:

@@ -1,0 +1,472 @@
+"""Batch inversion of many grooms on Dask: one task per groom, from a laptop to a cluster (docs/batch.md).
+
+    >>> from groomtool.batch import run_batch
+    >>> summary = run_batch(["a.data", "b.data"], "out", head="head.obj", params={"contacts": "all"})  # doctest: +SKIP
+    >>> summary.exit_code, summary.counts                                                              # doctest: +SKIP
+
+Each groom is one ``dask.distributed`` task running the same inversion as ``groom invert``; its
+output set goes to ``OUTDIR/<groom stem>/`` (rest.npz, rest_shape.obj, fitted.obj, report.json).
+
+* **Where it runs**: a ``LocalCluster`` of ``workers`` processes with one thread each (default), a
+  running scheduler (``scheduler="tcp://host:8786"``) or any ``distributed.Client`` (``client=``,
+  e.g. one on a dask-jobqueue ``SLURMCluster``).
+* **Threads**: numba and BLAS run one thread per worker (environment of the local workers, and
+  ``threadpoolctl`` / ``numba.set_num_threads`` inside every task, which also holds on a cluster).
+* **Complete output set**: the task writes with the project's writer (``io.results.write_result``),
+  which stages the whole set beside the target and swaps it in (io/outset.py): ``OUTDIR/<stem>`` is
+  the old complete set or the new one, never a mix, even when a worker is killed mid-write (its
+  staging directory is removed by the retry's write or at the end of the batch). A groom's output is
+  *complete* when ``OUTDIR/<stem>/report.json`` exists (the batch always writes it).
+* **Resume**: a groom whose output set is complete is skipped (status ``skipped``, its figures read
+  back from report.json and rest.npz); ``resume=False`` recomputes and replaces it.
+* **Failures are isolated**: a groom that cannot be read (``input_error``), whose contact solve does
+  not converge (``solver_failure``) or that raised anything else (``error``) is reported with its
+  message and the batch goes on. A task whose worker dies (killed, over its memory limit) is rerun
+  on another worker, up to ``retries`` times (Dask's ``allowed-failures``), then ``worker_lost``.
+* **Summary**: ``OUTDIR/batch_summary.csv`` and ``.json``, one row per input in input order.
+* **Exit code** (``BatchSummary.exit_code``): 0 all grooms inverted or skipped; 1 at least one
+  input error, unexpected error or lost worker; 2 otherwise, i.e. only solver failures.
+"""
+
+from __future__ import annotations
+
+import csv
+import io as _io
+import json
+import os
+import sys
+import time
+import traceback
+import uuid
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .groom import GroomError
+
+STATUSES = ("ok", "skipped", "input_error", "solver_failure", "worker_lost", "error")
+EXIT_OK, EXIT_USER_ERROR, EXIT_NOT_CONVERGED = 0, 1, 2
+SUMMARY_NAME = "batch_summary"
+COMPLETE_MARKER = "report.json"  # written last by io.results.write_result
+DEFAULT_FORMATS = ("npz", "obj", "json")
+THREAD_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1",
+              "NUMBA_NUM_THREADS": "1", "VECLIB_MAXIMUM_THREADS": "1", "NUMEXPR_NUM_THREADS": "1"}
+
+# the summary's columns, in order (CSV header; the JSON rows carry these plus ``timings_s``)
+COLUMNS = ("name", "input", "status", "strands", "elements", "contacts", "contacts_head", "contacts_strand",
+           "solver", "solve_status", "solve_iterations", "residual", "equilibrium_residual",
+           "unstable_strands", "unstable_with_contacts", "q0_max", "q0_change_max", "fit_max_error_m",
+           "load_s", "invert_s", "write_s", "wall_s", "worker", "worker_peak_rss_mib", "output", "error")
+
+
+@dataclass
+class BatchSummary:
+    """What :func:`run_batch` returns: one row per input (dicts with ``COLUMNS`` and ``timings_s``),
+    the status counts, the exit code and where the summary files are."""
+
+    rows: list[dict]
+    outdir: Path
+    wall_s: float
+    workers: str
+    counts: dict = field(default_factory=dict)
+    exit_code: int = EXIT_OK
+    csv_path: Path | None = None
+    json_path: Path | None = None
+
+    def failed(self) -> list[dict]:
+        return [r for r in self.rows if r["status"] not in ("ok", "skipped")]
+
+
+# --------------------------------------------------------------------------------------------------
+# one groom (runs in a worker)
+
+_HEADS: dict = {}  # per worker process: (path, units, mtime) -> head mesh, loaded once
+
+
+def _load_head_cached(path, units):
+    from .io import load_head
+
+    p = Path(path)
+    key = (str(p), str(units), p.stat().st_mtime_ns)
+    if key not in _HEADS:
+        _HEADS.clear()
+        _HEADS[key] = load_head(p, units=units)
+    return _HEADS[key]
+
+
+def _limit_threads():
+    """One numba and one BLAS thread in this worker (whatever its environment says)."""
+    from threadpoolctl import threadpool_limits
+
+    try:
+        import numba
+
+        numba.set_num_threads(1)
+    except (ImportError, ValueError):  # pragma: no cover - numba is a dependency
+        pass
+    return threadpool_limits(limits=1)
+
+
+def _empty_row(path, outdir) -> dict:
+    row = {c: None for c in COLUMNS}
+    row.update(name=Path(path).stem, input=str(path), output=str(Path(outdir) / Path(path).stem),
+               timings_s={})
+    return row
+
+
+def _row_from_report(row: dict, report: dict) -> dict:
+    row["strands"] = report.get("strands")
+    row["elements"] = report.get("elements")
+    c = report.get("contacts")
+    if c:
+        row.update(contacts=c.get("total"), contacts_head=c.get("strand_head"),
+                   contacts_strand=c.get("strand_strand"))
+    else:
+        row.update(contacts=0, contacts_head=0, contacts_strand=0)
+    s = report.get("solve")
+    if s:
+        row.update(solver=s.get("solver"), solve_status=s.get("status"), solve_iterations=s.get("iterations"),
+                   residual=s.get("residual"))
+    if "equilibrium" in report:
+        row["equilibrium_residual"] = report["equilibrium"].get("max_relative_residual")
+    st = report.get("stability")
+    if st:
+        row["unstable_strands"] = st.get("unstable_strands")
+        row["unstable_with_contacts"] = st.get("unstable_with_contacts")
+    if "fit" in report:
+        row["fit_max_error_m"] = report["fit"].get("max_error_m")
+    timings = dict(report.get("timings_s") or {})
+    row["timings_s"] = timings
+    row["invert_s"] = timings.get("total")
+    return row
+
+
+def _q0_figures(rest, curvatures) -> tuple[float, float]:
+    """max |q0| and max |q0 - q| over elements (1/m; the norm of (kappa1, kappa2, tau))."""
+    rest = np.asarray(rest, dtype=np.float64).reshape(-1, 3)
+    curvatures = np.asarray(curvatures, dtype=np.float64).reshape(-1, 3)
+    if not len(rest):
+        return 0.0, 0.0
+    return (float(np.linalg.norm(rest, axis=1).max()),
+            float(np.linalg.norm(rest - curvatures, axis=1).max()))
+
+
+def _worker_name() -> str:
+    try:
+        from distributed import get_worker
+
+        return get_worker().address
+    except (ImportError, ValueError):
+        return f"local:{os.getpid()}"
+
+
+def _peak_rss_mib() -> float | None:
+    try:
+        import resource
+    except ImportError:  # pragma: no cover - Windows
+        return None
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # KiB on Linux
+
+
+def is_complete(out: Path) -> bool:
+    """A groom's output set is complete when its report.json exists (written last, the directory
+    only ever appears whole: see the module docstring)."""
+    return (Path(out) / COMPLETE_MARKER).is_file()
+
+
+def _write(result, target: Path, formats) -> None:
+    """The output set, written by the project's writer as one atomic set (io/outset.py): the target
+    directory is the old complete set or the new one, never a mix, even if the worker is killed."""
+    from .io.results import write_result
+
+    extra = [f for f in formats if f in ("usd", "vtp", "hair")]
+    if extra:
+        from .cli.export_cmd import export_formats
+
+        def write_extra(stage):
+            return export_formats(result, stage, extra)
+    else:
+        write_extra = None
+    write_result(result, target, formats=tuple(f for f in formats if f in DEFAULT_FORMATS), extra=write_extra)
+
+
+def invert_one(path, outdir, head=None, params=None, load_options=None, formats=DEFAULT_FORMATS) -> dict:
+    """Invert one groom file and write its output set to ``outdir/<stem>/``; never raises for a bad
+    groom: returns its summary row with ``status`` and ``error``.  This is the Dask task."""
+    from .invert import InversionParams, SolverFailure, invert_groom
+    from .io import load_groom
+
+    t0 = time.perf_counter()
+    path = Path(path)
+    outdir = Path(outdir)
+    row = _empty_row(path, outdir)
+    row["worker"] = _worker_name()
+    load_options = dict(load_options or {})
+    units_name = load_options.pop("units_name", None)
+    units = load_options.get("units", "m")
+    try:
+        with _limit_threads():
+            try:
+                groom = load_groom(path, **load_options)
+                mesh = _load_head_cached(head, units) if head is not None else None
+            except (GroomError, OSError) as exc:
+                row.update(status="input_error", error=str(exc))
+                return row
+            t1 = time.perf_counter()
+            row["load_s"] = t1 - t0
+            try:
+                result = invert_groom(groom, head=mesh, params=params or InversionParams(), quiet=True)
+            except SolverFailure as exc:
+                _row_from_report(row, exc.report)
+                row.update(status="solver_failure", solve_status=exc.status, residual=exc.residual,
+                           error=f"{path}: {exc}")
+                return row
+            except GroomError as exc:
+                row.update(status="input_error", error=str(exc))
+                return row
+            t2 = time.perf_counter()
+            result.report["input_units"] = units_name or units
+            _row_from_report(row, result.report)
+            row["q0_max"], row["q0_change_max"] = _q0_figures(result.rest_curvatures, result.helix.curvatures)
+            _write(result, outdir / path.stem, formats)
+            row["write_s"] = time.perf_counter() - t2
+            row["status"] = "ok"
+    except Exception as exc:  # isolate anything else: the batch goes on
+        row.update(status="error", error=f"{path}: {type(exc).__name__}: {exc}")
+        row["traceback"] = traceback.format_exc(limit=8)
+    finally:
+        row["wall_s"] = time.perf_counter() - t0
+        row["worker_peak_rss_mib"] = _peak_rss_mib()
+    return row
+
+
+def skipped_row(path, outdir) -> dict:
+    """The summary row of a groom whose complete output set already exists (read back from it)."""
+    row = _empty_row(path, outdir)
+    out = Path(row["output"])
+    try:
+        report = json.loads((out / COMPLETE_MARKER).read_text(encoding="utf-8"))
+    except (OSError, ValueError) as exc:
+        row.update(status="skipped", error=f"{out / COMPLETE_MARKER}: unreadable ({exc})")
+        return row
+    _row_from_report(row, report)
+    row["status"] = "skipped"
+    npz = out / "rest.npz"
+    if npz.is_file():
+        try:
+            with np.load(npz) as z:
+                row["q0_max"], row["q0_change_max"] = _q0_figures(z["rest_curvatures"], z["curvatures"])
+        except (OSError, ValueError, KeyError):
+            pass
+    return row
+
+
+# --------------------------------------------------------------------------------------------------
+# the batch (runs in the client)
+
+
+def _check_inputs(inputs) -> list[Path]:
+    paths = [Path(p) for p in inputs]
+    if not paths:
+        raise GroomError("no input grooms given")
+    seen: dict[str, Path] = {}
+    for p in paths:
+        if p.stem in seen:
+            raise GroomError(f"{seen[p.stem]} and {p} would both write {p.stem}/: every input needs its own "
+                             "file name (stem)")
+        seen[p.stem] = p
+    return paths
+
+
+def _params(params):
+    from .invert import InversionParams
+
+    if params is None:
+        return InversionParams()
+    if isinstance(params, dict):
+        from .api import inversion_params
+
+        return inversion_params(**params)
+    return params
+
+
+def exit_code(rows) -> int:
+    """0 when every groom was inverted or skipped, 1 when any had an input error, an unexpected error
+    or lost its worker too often, else 2 (solver failures only)."""
+    statuses = {r["status"] for r in rows}
+    if statuses & {"input_error", "error", "worker_lost"}:
+        return EXIT_USER_ERROR
+    if "solver_failure" in statuses:
+        return EXIT_NOT_CONVERGED
+    return EXIT_OK
+
+
+def _cell(v):
+    if v is None:
+        return ""
+    if isinstance(v, float):
+        return f"{v:.6g}"
+    return str(v).replace("\n", " ")
+
+
+def write_summary(summary: BatchSummary) -> tuple[Path, Path]:
+    """OUTDIR/batch_summary.csv and .json, each written atomically."""
+    from .io.atomic import atomic_write
+    from .io.results import write_json
+
+    buf = _io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(COLUMNS)
+    for r in summary.rows:
+        w.writerow([_cell(r.get(c)) for c in COLUMNS])
+    csv_path = atomic_write(summary.outdir / f"{SUMMARY_NAME}.csv", buf.getvalue())
+    json_path = summary.outdir / f"{SUMMARY_NAME}.json"
+    write_json(json_path, {"outdir": str(summary.outdir), "workers": summary.workers, "wall_s": summary.wall_s,
+                           "counts": summary.counts, "exit_code": summary.exit_code, "grooms": summary.rows})
+    return csv_path, json_path
+
+
+def _tidy(outdir: Path, names) -> None:
+    """Remove what killed workers left beside the output sets (io.outset.recover: staging directories
+    of processes that have ended)."""
+    from .io.outset import recover
+
+    for name in names:
+        try:
+            recover(outdir / name)
+        except OSError:
+            pass
+
+
+def _local_cluster(workers: int, memory_limit, retries: int):
+    import logging
+
+    import dask
+    from distributed import LocalCluster
+
+    with dask.config.set({"distributed.scheduler.allowed-failures": int(retries),
+                          "distributed.nanny.pre-spawn-environ": THREAD_ENV}):
+        return LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, memory_limit=memory_limit,
+                            dashboard_address=":0", silence_logs=logging.ERROR, env=dict(THREAD_ENV))
+
+
+def run_batch(inputs, outdir, head=None, params=None, *, units="m", scale: float = 1.0, up="y", repair=False,
+              strand_length=None,
+              formats=DEFAULT_FORMATS, workers: int = 2, scheduler: str | None = None, client=None,
+              memory_limit="auto", retries: int = 3, resume: bool = True, quiet: bool = False) -> BatchSummary:
+    """Invert every groom file in ``inputs`` into ``outdir/<stem>/`` on Dask; returns a
+    :class:`BatchSummary` (also written as ``outdir/batch_summary.csv`` and ``.json``).
+
+    head: head mesh path (read once per worker) or None; params: ``InversionParams`` or a dict for
+    ``groomtool.api.inversion_params`` (e.g. ``{"contacts": "all"}``, lengths in metres);
+    units/scale/up/repair/strand_length: how to read the inputs and the head (as ``groom invert``);
+    formats: npz/obj/json/usd/vtp/hair (json is always written: report.json marks a complete set).
+    Where: ``client`` (a ``distributed.Client``), else ``scheduler`` (an address), else a LocalCluster
+    of ``workers`` processes, one thread each, ``memory_limit`` each ("auto": the machine's memory
+    shared out; "4GiB"; 0 for none) and ``retries`` reruns of a task whose worker died.
+    resume: skip grooms whose output set is complete.  quiet: no progress bar.
+    """
+    from tqdm.auto import tqdm
+
+    from .io.common import unit_scale
+    from .io.outset import check_target
+
+    t0 = time.perf_counter()
+    paths = _check_inputs(inputs)
+    params = _params(params)
+    if params.contacts == "head" and head is None:
+        raise GroomError("contacts 'head' needs a head mesh (--head MESH)")
+    if head is not None:
+        head = Path(head).resolve()
+        if not head.is_file():
+            raise GroomError(f"{head}: no such head mesh")
+    formats = tuple(dict.fromkeys(tuple(formats) + ("json",)))
+    unknown = sorted(set(formats) - set(DEFAULT_FORMATS) - {"usd", "vtp", "hair"})
+    if unknown:
+        raise GroomError(f"unknown output format(s) {', '.join(unknown)}")
+
+    outdir = check_target(outdir)  # before any computation: a directory we can write
+    for p in paths:
+        check_target(outdir / p.stem, inputs=(p, head))
+    outdir.mkdir(parents=True, exist_ok=True)
+    if not (np.isfinite(scale) and scale > 0):
+        raise GroomError(f"scale must be a positive number, got {scale:g}")
+    load_options = {"units": unit_scale(units) * scale if scale != 1.0 else units, "up": up, "repair": repair,
+                    "strand_length": strand_length, "units_name": units if isinstance(units, str) else None}
+
+    rows: list[dict | None] = [None] * len(paths)
+    todo = []
+    for i, p in enumerate(paths):
+        if resume and is_complete(outdir / p.stem):
+            rows[i] = skipped_row(p, outdir)
+        else:
+            todo.append(i)
+
+    bar = tqdm(total=len(paths), desc="batch", unit="groom", disable=quiet, initial=len(paths) - len(todo))
+    where = "none needed"
+    try:
+        if todo:
+            where = _run_tasks(paths, todo, rows, outdir, head, params, load_options, formats, workers,
+                               scheduler, client, memory_limit, retries, bar)
+    finally:
+        bar.close()
+        _tidy(outdir, [p.stem for p in paths])
+    counts = {s: sum(r["status"] == s for r in rows) for s in STATUSES}
+    summary = BatchSummary(rows=rows, outdir=outdir, wall_s=time.perf_counter() - t0, workers=where,
+                           counts=counts, exit_code=exit_code(rows))
+    summary.csv_path, summary.json_path = write_summary(summary)
+    return summary
+
+
+def _run_tasks(paths, todo, rows, outdir, head, params, load_options, formats, workers, scheduler, client,
+               memory_limit, retries, bar) -> str:
+    from contextlib import ExitStack
+
+    from distributed import Client, KilledWorker, as_completed
+
+    with ExitStack() as stack:
+        if client is None:
+            if scheduler is not None:
+                client = stack.enter_context(Client(scheduler))
+                where = f"scheduler {scheduler}"
+            else:
+                cluster = stack.enter_context(_local_cluster(workers, memory_limit, retries))
+                client = stack.enter_context(Client(cluster))
+                where = f"LocalCluster of {workers} worker processes, 1 thread each"
+        else:
+            where = f"client {client.scheduler.address}"
+        head_arg = None if head is None else str(head)
+        futures = {}
+        # largest files first (priority), so that the last tasks are short and the workers finish together
+        sizes = {i: (paths[i].stat().st_size if paths[i].is_file() else 0) for i in todo}
+        rank = {i: r for r, i in enumerate(sorted(todo, key=lambda i: -sizes[i]))}
+        for i in todo:
+            p = paths[i].resolve() if paths[i].exists() else paths[i]
+            fut = client.submit(invert_one, str(p), str(outdir), head_arg, params, load_options, formats,
+                                key=f"invert-{paths[i].stem}-{uuid.uuid4().hex[:8]}", pure=False,
+                                priority=len(todo) - rank[i])
+            futures[fut] = i
+        failed = 0
+        for fut in as_completed(futures):
+            i = futures[fut]
+            try:
+                row = fut.result()
+            except Exception as exc:  # the task never returned: its worker died too often, or was lost
+                row = _empty_row(paths[i], outdir)
+                status = "worker_lost" if isinstance(exc, KilledWorker) else "error"
+                row.update(status=status, error=f"{paths[i]}: {type(exc).__name__}: {exc}")
+            rows[i] = row
+            failed += row["status"] not in ("ok", "skipped")
+            bar.set_postfix(failed=failed, refresh=False)
+            bar.update(1)
+            fut.release()
+        return where
+
+
+def print_summary(summary: BatchSummary, file=sys.stdout) -> None:
+    c = summary.counts
+    done = ", ".join(f"{v} {k.replace('_', ' ')}" for k, v in c.items() if v)
+    print(f"groom batch: {len(summary.rows)} grooms in {summary.wall_s:.1f} s ({summary.workers}): {done}",
+          file=file)
+    print(f"  summary      {summary.csv_path}, {summary.json_path}", file=file)

@@ -1,0 +1,263 @@
+"""groom batch / groomtool.batch: Dask local clusters of 2 worker processes, a corrupt input, a killed
+worker, resume, and output sets that are never half-written."""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+distributed = pytest.importorskip("distributed")
+
+from groomtool import batch  # noqa: E402
+from groomtool.cli.main import main  # noqa: E402
+from groomtool.examples import example_groom  # noqa: E402
+from groomtool.groom import GroomError  # noqa: E402
+from groomtool.invert import InversionParams  # noqa: E402
+from groomtool.io import save_groom  # noqa: E402
+
+PARAMS = {"contacts": "head", "contact_radius": 5e-4}  # the example's strands lie 0.24 mm above its head
+NAMES = ("g0", "g1", "g2")
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory) -> Path:
+    """Three tiny grooms (3 strands each) on the example head, and a corrupt one."""
+    d = tmp_path_factory.mktemp("batch_inputs")
+    for seed, name in enumerate(NAMES):
+        groom, head = example_groom(n_strands=3, seed=seed)
+        save_groom(groom, d / f"{name}.obj")
+    head.export(d / "head.obj")
+    (d / "broken.obj").write_text("v 0 0 0\nv 0 -0.01 0\nv nan 0 0\nl 1 2 3\n")
+    return d
+
+
+@pytest.fixture(scope="module")
+def client():
+    """The batch's own local cluster (2 processes, 1 thread each), shared by the tests of this module."""
+    with batch._local_cluster(2, "auto", 3) as cluster, distributed.Client(cluster) as c:
+        yield c
+
+
+def inputs(data, names=NAMES):
+    return [data / f"{n}.obj" for n in names]
+
+
+def assert_nothing_half_written(out: Path):
+    """Every groom directory is a complete output set; no staging directory, no temporary file."""
+    for d in out.iterdir():
+        assert not d.name.startswith("."), f"left behind: {d}"
+        if d.is_dir():
+            assert sorted(p.name for p in d.iterdir()) == ["fitted.obj", "report.json", "rest.npz",
+                                                            "rest_shape.obj"], d
+    assert not [p for p in out.rglob(".*") if p.is_file()], "temporary files left behind"
+
+
+def read_csv(out: Path) -> dict:
+    with open(out / "batch_summary.csv", newline="") as f:
+        return {r["name"]: r for r in csv.DictReader(f)}
+
+
+def test_cli_corrupt_input_is_reported_and_the_batch_completes(data, tmp_path, capsys):
+    out = tmp_path / "out"
+    argv = ["batch", *map(str, inputs(data)), str(data / "broken.obj"), "--head", str(data / "head.obj"),
+            "--contacts", "head", "--contact-radius", "5e-4", "-o", str(out), "--workers", "2", "--quiet"]
+    assert main(argv) == 1  # an input error
+    err = capsys.readouterr().err
+    assert "broken: input_error" in err and str(data / "broken.obj") in err
+    rows = read_csv(out)
+    assert list(rows) == [*NAMES, "broken"]  # input order
+    assert rows["broken"]["status"] == "input_error"
+    assert str(data / "broken.obj") in rows["broken"]["error"] and "nan" in rows["broken"]["error"].lower()
+    for name in NAMES:
+        r = rows[name]
+        report = json.loads((out / name / "report.json").read_text())
+        assert r["status"] == "ok" and r["error"] == ""
+        assert int(r["strands"]) == report["strands"] == 3
+        assert int(r["contacts"]) == report["contacts"]["total"] > 0
+        assert r["solve_status"] == report["solve"]["status"]
+        assert float(r["residual"]) == pytest.approx(report["solve"]["residual"], rel=1e-5, abs=1e-300)
+        assert int(r["unstable_strands"]) == report["stability"]["unstable_strands"]
+        assert float(r["wall_s"]) >= float(r["invert_s"]) > 0
+        with np.load(out / name / "rest.npz") as z:
+            q0 = np.linalg.norm(z["rest_curvatures"], axis=1).max()
+        assert float(r["q0_max"]) == pytest.approx(q0, rel=1e-5)
+    assert not (out / "broken").exists()
+    assert_nothing_half_written(out)
+    summary = json.loads((out / "batch_summary.json").read_text())
+    assert summary["exit_code"] == 1
+    assert summary["counts"]["ok"] == 3 and summary["counts"]["input_error"] == 1
+    assert len(summary["grooms"]) == 4
+
+
+def test_workers_run_one_thread(client):
+    env = client.run(lambda: {k: os.environ.get(k) for k in ("NUMBA_NUM_THREADS", "OMP_NUM_THREADS",
+                                                             "OPENBLAS_NUM_THREADS")})
+    assert len(env) == 2
+    assert all(v == {"NUMBA_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"}
+               for v in env.values())
+
+
+def test_resume_skips_complete_output_sets_and_reruns_the_others(client, data, tmp_path):
+    out = tmp_path / "out"
+    first = batch.run_batch(inputs(data), out, head=data / "head.obj", params=PARAMS, client=client, quiet=True)
+    assert first.counts["ok"] == 3
+    stamps = {n: (out / n / "rest.npz").stat().st_mtime_ns for n in NAMES}
+    (out / "g1" / "report.json").unlink()  # g1 incomplete: as if its writer died before the last file
+
+    second = batch.run_batch(inputs(data), out, head=data / "head.obj", params=PARAMS, client=client, quiet=True)
+    by_name = {r["name"]: r for r in second.rows}
+    assert [by_name[n]["status"] for n in NAMES] == ["skipped", "ok", "skipped"]
+    assert second.exit_code == 0
+    assert (out / "g0" / "rest.npz").stat().st_mtime_ns == stamps["g0"]
+    assert (out / "g2" / "rest.npz").stat().st_mtime_ns == stamps["g2"]
+    assert (out / "g1" / "rest.npz").stat().st_mtime_ns != stamps["g1"]
+    # a skipped groom's figures are read back from its output set
+    for key in ("strands", "contacts", "residual", "unstable_strands", "q0_max", "q0_change_max"):
+        assert by_name["g0"][key] == first.rows[0][key], key
+    assert_nothing_half_written(out)
+    assert read_csv(out)["g0"]["status"] == "skipped"
+
+    third = batch.run_batch(inputs(data), out, head=data / "head.obj", params=PARAMS, client=client, quiet=True,
+                            resume=False)
+    assert [r["status"] for r in third.rows] == ["ok", "ok", "ok"]
+    assert (out / "g0" / "rest.npz").stat().st_mtime_ns != stamps["g0"]
+
+
+def test_solver_failure_is_reported_with_exit_code_2(client, data, tmp_path):
+    out = tmp_path / "out"
+    params = {**PARAMS, "solver": "gs", "max_iterations": 1, "solver_tolerance": 1e-14}
+    if "strict" in {f.name for f in dataclasses.fields(InversionParams)}:
+        params["strict"] = True  # an unconverged but feasible solve is refused, not written
+    summary = batch.run_batch(inputs(data, ["g0"]), out, head=data / "head.obj", params=params, client=client,
+                              quiet=True)
+    (row,) = summary.rows
+    assert row["status"] == "solver_failure" and summary.exit_code == 2
+    assert row["solve_status"] == "max_iter" and row["residual"] > 1e-14
+    assert "did not converge" in row["error"] and str(data / "g0.obj") in row["error"]
+    assert row["contacts"] > 0 and row["strands"] == 3
+    assert not (out / "g0").exists()
+    assert_nothing_half_written(out)
+
+
+def test_a_writer_that_fails_leaves_no_partial_output(data, tmp_path, monkeypatch):
+    """In process (the task function itself): the project's writer stages the set, so a failure while
+    writing is reported in the row and leaves neither OUTDIR/<stem> nor a staging directory."""
+    import groomtool.io.results as results
+
+    def broken_write_json(path, data):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(results, "write_json", broken_write_json)
+    out = tmp_path / "out"
+    from groomtool.api import inversion_params
+
+    row = batch.invert_one(data / "g0.obj", out, head=data / "head.obj", params=inversion_params(**PARAMS))
+    assert row["status"] == "error" and "No space left" in row["error"]
+    assert not (out / "g0").exists()
+    assert list(out.iterdir()) == []
+
+
+def test_exit_codes_and_bad_batches(data, tmp_path):
+    rows = [{"status": s} for s in ("ok", "skipped")]
+    assert batch.exit_code(rows) == 0
+    assert batch.exit_code(rows + [{"status": "solver_failure"}]) == 2
+    assert batch.exit_code(rows + [{"status": "solver_failure"}, {"status": "input_error"}]) == 1
+    assert batch.exit_code(rows + [{"status": "worker_lost"}]) == 1
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "g0.obj").write_text((data / "g0.obj").read_text())
+    with pytest.raises(GroomError, match="g0.obj and .*g0.obj would both write g0/"):
+        batch.run_batch([data / "g0.obj", other / "g0.obj"], tmp_path / "out", quiet=True)
+    with pytest.raises(GroomError, match="no such head mesh"):
+        batch.run_batch([data / "g0.obj"], tmp_path / "out", head=tmp_path / "nohead.obj", quiet=True)
+    assert main(["batch", str(data / "g0.obj"), "--contacts", "head", "-o", str(tmp_path / "o"), "-q"]) == 1
+    assert main(["batch", str(data / "g0.obj"), "--memory-limit", "lots", "-o", str(tmp_path / "o"), "-q"]) == 1
+
+
+class KillMidWrite(distributed.WorkerPlugin):
+    """In every worker: the first time ``name``'s report.json is written (its rest.npz and OBJ files are
+    already staged), the worker process dies on the spot (os._exit), once per ``marker`` file."""
+
+    def __init__(self, name: str, marker: str):
+        self.name, self.marker = name, marker
+
+    def setup(self, worker):
+        import groomtool.io.results as results
+        from groomtool.io.outset import PREFIX
+
+        self.original = original = results.write_json
+        tag, marker = f"{PREFIX}{self.name}-", self.marker
+
+        def write_json(path, data):
+            if tag in str(path):
+                try:
+                    fd = os.open(marker, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
+                except FileExistsError:
+                    return original(path, data)
+                os.write(fd, f"{os.getpid()} {sorted(os.listdir(Path(path).parent))}".encode())
+                os.close(fd)
+                os._exit(1)
+            return original(path, data)
+
+        results.write_json = write_json
+
+    def teardown(self, worker):
+        import groomtool.io.results as results
+
+        results.write_json = self.original
+
+
+def test_a_worker_killed_mid_write_is_retried_and_nothing_is_half_written(client, data, tmp_path):
+    out = tmp_path / "out"
+    marker = tmp_path / "killed"
+    client.register_plugin(KillMidWrite("g1", str(marker)), name="kill-mid-write")
+    try:
+        summary = batch.run_batch(inputs(data), out, head=data / "head.obj", params=PARAMS, client=client,
+                                  quiet=True)
+    finally:
+        client.unregister_worker_plugin("kill-mid-write")
+    assert marker.exists(), "no worker was killed: the test proves nothing"
+    killed_pid, staged = marker.read_text().split(" ", 1)
+    assert "rest.npz" in staged and "report.json" not in staged  # killed with part of the set written
+    assert [r["status"] for r in summary.rows] == ["ok", "ok", "ok"], summary.failed()
+    assert summary.exit_code == 0
+    g1 = summary.rows[1]
+    assert g1["name"] == "g1" and (out / "g1" / "report.json").is_file()
+    assert not g1["worker"].startswith("local:")
+    assert_nothing_half_written(out)  # the killed worker's staging directory is gone too
+
+
+def test_a_worker_that_always_dies_is_reported_after_the_retries(client, data, tmp_path):
+    """allowed-failures is the retry budget: a groom whose worker dies every time is 'worker_lost'.
+    (Last in this module: it restarts the shared cluster's workers.)"""
+
+    class KillAlways(distributed.WorkerPlugin):
+        def transition(self, key, start, finish, **kwargs):
+            if finish == "executing" and "invert-g2-" in str(key):
+                os._exit(1)
+
+    def allowed_failures(n):
+        def set_it(dask_scheduler):
+            dask_scheduler.allowed_failures = n
+        client.run_on_scheduler(set_it)
+
+    out = tmp_path / "out"
+    client.register_plugin(KillAlways(), name="kill-always")
+    allowed_failures(1)
+    try:
+        summary = batch.run_batch(inputs(data, ["g2"]), out, head=data / "head.obj", params=PARAMS, client=client,
+                                  quiet=True)
+    finally:
+        allowed_failures(3)
+        client.unregister_worker_plugin("kill-always")
+    (row,) = summary.rows
+    assert row["status"] == "worker_lost" and "KilledWorker" in row["error"], row
+    assert summary.exit_code == 1
+    assert not (out / "g2").exists()
+    assert_nothing_half_written(out)
