@@ -11,7 +11,7 @@ import sys
 
 import numpy as np
 
-from . import batch_cmd, export_cmd, simulate_cmd, view_cmd
+from . import export_cmd, simulate_cmd, view_cmd
 
 EXIT_OK, EXIT_USER_ERROR, EXIT_NOT_CONVERGED = 0, 1, 2
 DEFAULT_TOLERANCE_M = 5e-4  # the fit tolerance when --tolerance is not given, whatever --units says
@@ -37,11 +37,22 @@ exit codes: 0 ok, 1 user error, 2 solver did not converge (nothing written)
 def _add_input_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--units", choices=["m", "cm", "mm"], default="m",
                    help="unit of the input coordinates (and of the head mesh); converted to metres (default m)")
-    p.add_argument("--up", choices=["y", "z"], default="y", help="the up axis of the input (default y)")
+    p.add_argument("--up", choices=UP_CHOICES, default="y", metavar="{x,y,z,-x,-y,-z}",
+                   help="the up axis of the input, gravity points the other way (default y; write --up=-y or "
+                        "--up -y); nothing is rotated")
     p.add_argument("--repair", action="store_true",
                    help="drop duplicate consecutive points and strands of fewer than 2 points instead of failing")
     p.add_argument("--strand-length", type=int, default=None, metavar="N",
                    help="vertices per strand for OBJ files with vertices only (no 'l' records)")
+
+
+UP_CHOICES = ["x", "y", "z", "-x", "-y", "-z"]
+
+
+def _add_scale_option(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--scale", type=float, default=1.0, metavar="FACTOR",
+                   help="multiply the input coordinates (and the head) by FACTOR after --units, e.g. 0.357 for a "
+                        "groom reconstructed at 2.8x real size (default 1); tolerances stay in --units")
 
 
 def _add_material_options(p: argparse.ArgumentParser) -> None:
@@ -58,6 +69,9 @@ def _add_material_options(p: argparse.ArgumentParser) -> None:
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(
         prog="groom", description="Hair grooming and inversion: rest curvatures that make a groom an equilibrium.")
+    from .. import __version__
+
+    parser.add_argument("--version", action="version", version=f"groom (groomtool) {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
 
     inv = sub.add_parser("invert", help="compute rest curvatures that hold the groom in place",
@@ -66,6 +80,7 @@ def build_parser() -> argparse.ArgumentParser:
     inv.add_argument("--head", default=None, help="head mesh (.obj, .ply, .stl), same units as the input")
     inv.add_argument("-o", "--output", default="groom_out", help="output directory (default ./groom_out)")
     _add_input_options(inv)
+    _add_scale_option(inv)
     inv.add_argument("--tolerance", type=float, default=None,
                      help="max distance of the input points to the fitted helices, in --units (default 0.5 mm)")
     inv.add_argument("--relative-tolerance", type=float, default=None,
@@ -104,15 +119,18 @@ def build_parser() -> argparse.ArgumentParser:
     ex.add_argument("directory", nargs="?", default="example", help="where to write them (default ./example)")
     ex.add_argument("--strands", type=int, default=200, help="number of strands (default 200)")
 
-    info = sub.add_parser("info", help="print strand and vertex counts, lengths and bounding box",
-                          epilog="example:\n  groom info harolongo.data --units cm",
+    info = sub.add_parser("info", help="print counts, lengths, bounding box, root centroid, the direction strands "
+                                       "go and, with --head, how far the roots are from the head",
+                          description="What helps spot a wrong --units, --scale or --up before an inversion.",
+                          epilog="example:\n  groom info harolongo.data --units cm --head head.obj",
                           formatter_class=argparse.RawDescriptionHelpFormatter)
     info.add_argument("input")
+    info.add_argument("--head", default=None, help="head mesh (same units as the input): distance of the roots to it")
     _add_input_options(info)
+    _add_scale_option(info)
     simulate_cmd.add_parsers(sub)
     view_cmd.add_parser(sub)
     export_cmd.add_parser(sub)
-    batch_cmd.add_parser(sub, inv)
     return parser
 
 
@@ -127,24 +145,84 @@ def _load_inputs(args):
     from ..groom import UNIT_SCALE
     from ..io import load_groom, load_head
 
-    groom = load_groom(args.input, units=args.units, up=args.up, repair=args.repair,
+    factor = getattr(args, "scale", 1.0)
+    if not (np.isfinite(factor) and factor > 0):
+        raise UserError(f"--scale must be a positive number, got {factor:g}")
+    units = UNIT_SCALE[args.units] * factor
+    groom = load_groom(args.input, units=units, up=args.up, repair=args.repair,
                        strand_length=args.strand_length)
-    head = load_head(args.head, units=args.units) if getattr(args, "head", None) else None
+    head = load_head(args.head, units=units) if getattr(args, "head", None) else None
     return groom, head, UNIT_SCALE[args.units]
 
 
 def cmd_info(args) -> int:
-    groom, _, _ = _load_inputs(args)
+    groom, head, _ = _load_inputs(args)
+    print("\n".join(info_lines(groom, head, args.units, getattr(args, "scale", 1.0))))
+    return EXIT_OK
+
+
+def _vec(v, fmt=".4f") -> str:
+    return "[" + " ".join(f"{x:{fmt}}" for x in v) + "]"
+
+
+def info_lines(groom, head=None, units: str = "m", scale: float = 1.0) -> list[str]:
+    """``groom info``: counts, lengths, box, root centroid, the direction strands go, roots to head."""
+    from ..groom import up_vector
+
     lengths = groom.lengths()
     counts = groom.counts
     lo, hi = groom.bounds()
-    print(f"{groom.source}")
-    print(f"  strands   {groom.n_strands}")
-    print(f"  vertices  {groom.n_points} (per strand min {counts.min()}, median {int(np.median(counts))}, max {counts.max()})")
-    print(f"  length    min {lengths.min():.4f} m, median {np.median(lengths):.4f} m, max {lengths.max():.4f} m")
-    print(f"  bounds    [{lo[0]:.4f} {lo[1]:.4f} {lo[2]:.4f}] .. [{hi[0]:.4f} {hi[1]:.4f} {hi[2]:.4f}] m")
-    print(f"  up axis   {groom.up}   (input units: {args.units}, shown in metres)")
-    return EXIT_OK
+    roots = groom.points[groom.offsets[:-1]]
+    tips = groom.points[groom.offsets[1:] - 1]
+    d = tips - roots
+    norm = np.linalg.norm(d, axis=1)
+    unit = d[norm > 0] / norm[norm > 0, None]
+    mean = unit.mean(axis=0) if len(unit) else np.zeros(3)
+    axis = int(np.argmax(np.abs(mean)))
+    signed = ("-" if mean[axis] < 0 else "+") + "xyz"[axis]
+    share = float(np.mean(unit[:, axis] * np.sign(mean[axis]) > np.cos(np.pi / 4))) if len(unit) else 0.0
+    size = hi - lo
+    lines = [f"{groom.source}",
+             f"  strands   {groom.n_strands}",
+             f"  vertices  {groom.n_points} (per strand min {counts.min()}, median {int(np.median(counts))}, "
+             f"max {counts.max()})",
+             f"  length    min {lengths.min():.4f} m, median {np.median(lengths):.4f} m, max {lengths.max():.4f} m",
+             f"  bounds    {_vec(lo)} .. {_vec(hi)} m, size {_vec(size)} m",
+             f"  roots     centroid {_vec(roots.mean(axis=0))} m",
+             f"  direction root to tip mostly {signed} (mean unit vector {_vec(mean, '.2f')}; "
+             f"{share:.0%} of strands within 45 degrees of {signed})",
+             f"  up axis   {groom.up} (gravity {_vec(groom.gravity(), '.2f')} m/s^2)   "
+             f"(input units: {args_units(units, scale)}, shown in metres)"]
+    hints = []
+    up = up_vector(groom.up)
+    if len(unit) and float(mean @ up) > 0.5:
+        hints.append(f"strands mostly go {signed}, which is up for --up {groom.up}: hair usually hangs down; "
+                     "is --up right?")
+    if size.max() > 1.0:
+        hints.append(f"the groom is {size.max():.2f} m across (a head is about 0.2 m): check --units / --scale")
+    elif 0 < size.max() < 0.02:
+        hints.append(f"the groom is {size.max() * 1e3:.1f} mm across: check --units / --scale")
+    if head is not None:
+        from ..contact.head import root_gaps
+
+        gaps = root_gaps(roots, head)
+        inside = int(np.count_nonzero(gaps < 0))
+        lines.append(f"  head      roots to the surface: median {np.median(np.abs(gaps)) * 1e3:.2f} mm, max "
+                     f"{np.abs(gaps).max() * 1e3:.2f} mm; {inside} of {len(gaps)} roots inside the head")
+        hlo, hhi = np.asarray(head.bounds)
+        lines.append(f"            head bounds {_vec(hlo)} .. {_vec(hhi)} m")
+        far = float(np.median(np.abs(gaps)))
+        if far > 0.01:
+            hints.append(f"the roots are {far * 1e3:.0f} mm from the head (median): are the groom and head in the "
+                         "same units and frame? (--snap-roots moves roots onto the head)")
+        if inside > len(gaps) // 2:
+            hints.append("most roots are inside the head: check the frame, or use --snap-roots")
+    lines += [f"  check     {h}" for h in hints]
+    return lines
+
+
+def args_units(units: str, scale: float) -> str:
+    return units if scale == 1.0 else f"{units} x {scale:g}"
 
 
 def cmd_invert(args) -> int:
@@ -156,6 +234,10 @@ def cmd_invert(args) -> int:
     groom, head, scale = _load_inputs(args)
     if args.contacts == "head" and head is None:
         raise UserError("--contacts head needs --head MESH")
+    if head is not None and args.contacts == "none" and not args.quiet:
+        print("groom invert: note: --head without --contacts: the head is not an obstacle here; it is used for the "
+              f"root gaps{', --snap-roots' if args.snap_roots else ''} and stored with the result "
+              "(add --contacts head to hold the strands on it)", file=sys.stderr)
     try:
         params = _invert_params(args, scale)
     except ValueError as exc:
@@ -238,18 +320,42 @@ def cmd_example(args) -> int:
 COMMANDS = {"invert": cmd_invert, "info": cmd_info, "example": cmd_example,
             "view": view_cmd.cmd_view, "export": export_cmd.cmd_export,
             "simulate": simulate_cmd.cmd_simulate, "check": simulate_cmd.cmd_check}
-COMMANDS["batch"] = batch_cmd.cmd_batch
+
+
+# library advice -> the command-line flag that does it
+CLI_WORDING = (("load with repair=True", "pass --repair"), ("pass strand_length=N", "pass --strand-length N"),
+               ("strand_length=", "--strand-length "), ("repair=True", "--repair"))
+
+
+def cli_message(message: str) -> str:
+    """A library error message with its keyword advice replaced by the CLI flags."""
+    for old, new in CLI_WORDING:
+        message = message.replace(old, new)
+    return message
+
+
+def _join_negative_up(argv: list) -> list:
+    """``--up -y`` -> ``--up=-y`` (argparse would take -y for an option)."""
+    out, i = [], 0
+    while i < len(argv):
+        if argv[i] == "--up" and i + 1 < len(argv) and argv[i + 1] in ("-x", "-y", "-z"):
+            out.append(f"--up={argv[i + 1]}")
+            i += 2
+        else:
+            out.append(argv[i])
+            i += 1
+    return out
 
 
 def main(argv=None) -> int:
     from ..groom import GroomError
 
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args = parser.parse_args(_join_negative_up(sys.argv[1:] if argv is None else list(argv)))
     try:
         return COMMANDS[args.command](args)
     except (GroomError, UserError, FileNotFoundError) as exc:
-        print(f"groom {args.command}: error: {exc}", file=sys.stderr)
+        print(f"groom {args.command}: error: {cli_message(str(exc))}", file=sys.stderr)
         return EXIT_USER_ERROR
     except KeyboardInterrupt:
         print(f"groom {args.command}: interrupted", file=sys.stderr)
