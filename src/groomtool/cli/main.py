@@ -1,12 +1,14 @@
 """The ``groom`` command line.
 
-Exit codes: 0 success, 1 user error (bad input, bad option), 2 a solver did not converge.
+Exit codes: 0 success, 1 user error (bad input, bad option), 2 a solver did not converge, 3 internal
+error (a bug, one line; GROOM_DEBUG=1 shows the traceback), 130 interrupted.
 All lengths inside are metres; ``--units`` states the unit of the input files and is converted.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 
 import numpy as np
@@ -14,6 +16,7 @@ import numpy as np
 from . import export_cmd, simulate_cmd, view_cmd
 
 EXIT_OK, EXIT_USER_ERROR, EXIT_NOT_CONVERGED = 0, 1, 2
+EXIT_INTERNAL_ERROR = 3  # an unexpected exception: a bug, reported in one line (GROOM_DEBUG=1: traceback)
 DEFAULT_TOLERANCE_M = 5e-4  # the fit tolerance when --tolerance is not given, whatever --units says
 
 
@@ -231,7 +234,15 @@ def cmd_invert(args) -> int:
     from ..io.results import write_result
 
     check_target(args.output, inputs=(args.input, args.head))  # before any computation
+    try:
+        _invert_params(args, 1.0)  # option values, before reading the inputs
+    except ValueError as exc:
+        raise UserError(str(exc)) from exc
     groom, head, scale = _load_inputs(args)
+    if head is not None:
+        from ..io.head_validation import check_head_fits_groom
+
+        check_head_fits_groom(head, groom)
     if args.contacts == "head" and head is None:
         raise UserError("--contacts head needs --head MESH")
     if head is not None and args.contacts == "none" and not args.quiet:
@@ -257,8 +268,31 @@ def cmd_invert(args) -> int:
     return EXIT_OK
 
 
+MAX_ROD_SEGMENTS = 10_000  # per strand: beyond, the discrete rest data would not fit in memory
+
+
+def _check_invert_options(args) -> None:
+    """Option values the computation cannot take, as one-line user errors (before any work)."""
+    if args.contact_radius is not None and not (0 < args.contact_radius < np.inf):
+        raise UserError(f"--contact-radius must be a positive length, got {args.contact_radius:g}")
+    if args.relative_tolerance is not None and not (0 < args.relative_tolerance <= 1):
+        raise UserError(f"--relative-tolerance is a fraction of each strand's length: 0 < value <= 1, "
+                        f"got {args.relative_tolerance:g}")
+    if args.tolerance is not None and not (0 < args.tolerance < np.inf):
+        raise UserError(f"--tolerance must be a positive length, got {args.tolerance:g}")
+    if args.rod_segments is not None and not (2 <= args.rod_segments <= MAX_ROD_SEGMENTS):
+        raise UserError(f"--rod-segments must be 2 to {MAX_ROD_SEGMENTS:,} segments per strand, "
+                        f"got {args.rod_segments}")
+    if args.gamma is not None and not (0 <= args.gamma < np.inf):
+        raise UserError(f"--gamma must be >= 0 and finite, got {args.gamma:g}")
+    if not (0 < args.solver_tolerance < np.inf):
+        raise UserError(f"--solver-tolerance must be > 0 and finite, got {args.solver_tolerance:g}")
+
+
 def _invert_params(args, scale):
     from ..invert import InversionParams
+
+    _check_invert_options(args)
 
     return InversionParams(
         material=_material(args), tolerance=DEFAULT_TOLERANCE_M if args.tolerance is None else args.tolerance * scale,
@@ -347,11 +381,22 @@ def _join_negative_up(argv: list) -> list:
     return out
 
 
+def _one_line_warning(message, category, filename, lineno, file=None, line=None):
+    print(f"groom: warning: {message}", file=sys.stderr if file is None else file)
+
+
 def main(argv=None) -> int:
+    import warnings
+
     from ..groom import GroomError
 
-    parser = build_parser()
-    args = parser.parse_args(_join_negative_up(sys.argv[1:] if argv is None else list(argv)))
+    try:
+        parser = build_parser()
+        args = parser.parse_args(_join_negative_up(sys.argv[1:] if argv is None else list(argv)))
+    except KeyboardInterrupt:
+        print("groom: interrupted", file=sys.stderr)
+        return 130
+    previous_showwarning, warnings.showwarning = warnings.showwarning, _one_line_warning
     try:
         return COMMANDS[args.command](args)
     except (GroomError, UserError, FileNotFoundError) as exc:
@@ -360,6 +405,18 @@ def main(argv=None) -> int:
     except KeyboardInterrupt:
         print(f"groom {args.command}: interrupted", file=sys.stderr)
         return 130
+    except MemoryError:
+        print(f"groom {args.command}: error: out of memory (an input or option too large for this machine)",
+              file=sys.stderr)
+        return EXIT_USER_ERROR
+    except Exception as exc:  # a bug: one line, the traceback only on request
+        if os.environ.get("GROOM_DEBUG"):
+            raise
+        print(f"groom {args.command}: internal error: {type(exc).__name__}: {exc} "
+              f"(please report it; GROOM_DEBUG=1 shows the traceback)", file=sys.stderr)
+        return EXIT_INTERNAL_ERROR
+    finally:
+        warnings.showwarning = previous_showwarning
 
 
 if __name__ == "__main__":
