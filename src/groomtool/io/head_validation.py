@@ -91,6 +91,8 @@ def validate_head(vertices, faces, source: str):
     faces = np.asarray(faces, dtype=np.int64)
     if len(faces) == 0:
         raise GroomError(f"{source}: no triangles: not a mesh (a groom of lines, or an empty file?)")
+    if vertices.ndim != 2 or vertices.shape[1] != 3 or faces.ndim != 2 or faces.shape[1] != 3:
+        raise GroomError(f"{source}: not a triangle mesh in 3D (vertices {vertices.shape}, faces {faces.shape})")
     bad = ~np.isfinite(vertices).all(axis=1)
     if bad.any():
         first = int(np.argmax(bad))

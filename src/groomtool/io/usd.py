@@ -515,10 +515,19 @@ def _open(source: str) -> Usd.Stage:
     try:
         stage = Usd.Stage.Open(source)
     except Exception as exc:  # pxr raises Tf.ErrorException for unreadable layers
-        raise GroomError(f"{source}: cannot open as USD: {str(exc).strip().splitlines()[-1]}") from exc
+        raise GroomError(f"{source}: cannot open as USD: {_pxr_message(exc)}") from None
     if stage is None:
         raise GroomError(f"{source}: cannot open as USD")
     return stage
+
+
+def _pxr_message(exc) -> str:
+    """The last line of a pxr error, which may itself fail to decode (a non-UTF-8 file)."""
+    try:
+        lines = str(exc).strip().splitlines()
+    except Exception:  # noqa: BLE001 - UnicodeDecodeError inside Tf.ErrorException.__str__
+        return "not UTF-8 text, or a corrupt file"
+    return lines[-1].strip() if lines else type(exc).__name__
 
 
 def _select_curves(stage, source: str, prim: str | None, all_curves: bool) -> list:
