@@ -253,10 +253,6 @@ def cmd_invert(args) -> int:
         params = _invert_params(args, scale)
     except ValueError as exc:
         raise UserError(str(exc)) from exc
-    if not args.quiet:  # a cold numba cache: compile first, say so once, so the bars measure the work
-        from ..warmup import announce_and_warm
-
-        announce_and_warm(params, with_head=head is not None)
     try:
         result = invert_groom(groom, head=head, params=params, quiet=args.quiet)
     except SolverFailure as exc:
@@ -289,8 +285,6 @@ def _check_invert_options(args) -> None:
                         f"got {args.rod_segments}")
     if args.gamma is not None and not (0 <= args.gamma < np.inf):
         raise UserError(f"--gamma must be >= 0 and finite, got {args.gamma:g}")
-    if not (0 < args.solver_tolerance < np.inf):
-        raise UserError(f"--solver-tolerance must be > 0 and finite, got {args.solver_tolerance:g}")
 
 
 def _invert_params(args, scale):
