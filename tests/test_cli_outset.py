@@ -106,6 +106,27 @@ def test_format_npz_leaves_no_stale_files(result, tmp_path):
     assert (out / "notes.txt").read_text() == "mine"
 
 
+def test_foreign_subdirectory_is_refused_before_computing(result, example, tmp_path, capsys):
+    out = tmp_path / "out"
+    write_result(stamped(result, 1), out)
+    (out / "sim").mkdir()
+    (out / "sim" / "frame_0000.obj").write_text("v 0 0 0\n")
+    from groomtool.groom import GroomError
+
+    with pytest.raises(GroomError, match="holds the directory 'sim'"):
+        write_result(stamped(result, 2), out)
+    assert main(["invert", str(example[0]), "-o", str(out), "-q"]) == EXIT_USER_ERROR
+    assert "holds the directory 'sim'" in capsys.readouterr().err
+    assert run_of_with(out, {"sim"}) == 1 and (out / "sim" / "frame_0000.obj").exists()
+
+
+def run_of_with(out, extra) -> int:
+    with np.load(out / "rest.npz") as z:
+        run = int(z["run"])
+    assert {p.name for p in out.iterdir()} == SET | set(extra)
+    return run
+
+
 def _child_writes(result, out):
     """In a forked child: write sets 2, 3, 4, ... until killed."""
     try:

@@ -9,7 +9,8 @@ one in.  An interrupt at any moment leaves the old complete set or the new compl
 next write.
 
 Files of the old directory that are not outputs of a run (``OWNED`` names) are carried into the new set
-by hard links (copies where links fail), so only stale outputs of an earlier run disappear.
+by hard links (copies where links fail), so only stale outputs of an earlier run disappear; a
+directory inside the old one is refused (GroomError) rather than copied or deleted.
 """
 
 from __future__ import annotations
@@ -109,16 +110,26 @@ def _link_or_copy(src, dst):
     return dst
 
 
+def _check_foreign(target: Path, outdir) -> None:
+    """A directory inside the target is refused: the set is replaced as a whole, and a directory
+    (maybe a mount point, maybe large) is not something to copy or delete on the user's behalf."""
+    if not target.is_dir():
+        return
+    for p in target.iterdir():
+        if p.name not in OWNED and p.is_dir() and not p.is_symlink():
+            raise GroomError(
+                f"{outdir}: holds the directory {p.name!r}, which is not an output of groom invert: give the "
+                "outputs a directory of their own (the output set is replaced as a whole)")
+
+
 def _carry_unowned(old: Path, new: Path) -> None:
-    """Hard-link what the old directory holds besides run outputs into the new set."""
+    """Hard-link the files the old directory holds besides run outputs into the new set."""
     for p in old.iterdir():
         if p.name in OWNED or (new / p.name).exists():
             continue
-        if p.is_dir() and not p.is_symlink():
-            shutil.copytree(p, new / p.name, symlinks=True, copy_function=_link_or_copy)
-        elif p.is_symlink():
+        if p.is_symlink():
             os.symlink(os.readlink(p), new / p.name)
-        else:
+        elif p.is_file():
             _link_or_copy(p, new / p.name)
 
 
@@ -168,6 +179,7 @@ def check_target(outdir, inputs=()) -> Path:
         raise GroomError(f"{outdir}: cannot create it: {ancestor} is a file, not a directory")
     if not os.access(ancestor, os.W_OK | os.X_OK):
         raise GroomError(f"{outdir}: cannot write there: {ancestor} is not writable")
+    _check_foreign(target, outdir)
     probe = ancestor / f"{PREFIX}probe-{os.getpid()}-{uuid.uuid4().hex[:8]}.new"
     try:
         probe.mkdir()
@@ -197,6 +209,7 @@ def output_set(outdir):
     recover(target)
     if target.exists() and not target.is_dir():
         raise GroomError(f"{outdir}: exists and is not a directory")
+    _check_foreign(target, outdir)
     run = f"{PREFIX}{target.name}-{os.getpid()}-{uuid.uuid4().hex[:12]}"
     stage, aside = target.with_name(run + ".new"), target.with_name(run + ".old")
     stage.mkdir()
