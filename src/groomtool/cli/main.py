@@ -253,6 +253,10 @@ def cmd_invert(args) -> int:
         params = _invert_params(args, scale)
     except ValueError as exc:
         raise UserError(str(exc)) from exc
+    if not args.quiet:  # a cold numba cache: compile first, say so once, so the bars measure the work
+        from ..warmup import announce_and_warm
+
+        announce_and_warm(params, with_head=head is not None)
     try:
         result = invert_groom(groom, head=head, params=params, quiet=args.quiet)
     except SolverFailure as exc:
