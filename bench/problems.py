@@ -223,3 +223,33 @@ def random_factored_problem(m: int, n_strands: int, dofs: int, *, gamma=0.01, mu
     b = rng.normal(size=3 * m)
     mus = np.broadcast_to(np.asarray(mu, float), (m,)).copy()
     return ContactProblem(H, blocks, np.arange(n_strands + 1) * dofs, gamma, b, mus)
+
+
+# ----------------------------------------------------------------------------------------------
+# so-bogus's generator (../shared/bench/gen_hair_problem.py): the side-by-side problems
+# ----------------------------------------------------------------------------------------------
+def read_bogus_problem(path):
+    """(W, b, mu) of a problem file written by gen_hair_problem.py ("BGSPRB01": n, nnzb, the lower block
+    triangle's rows, cols and row-major 3x3 blocks, b (3n,), mu (n,), little-endian).  W is returned as
+    the full symmetric scipy CSR matrix (3n, 3n)."""
+    with open(path, "rb") as f:
+        magic = f.read(8)
+        if magic != b"BGSPRB01":
+            raise ValueError(f"{path}: not a BGSPRB01 problem file (magic {magic!r})")
+        n, nnzb = (int(v) for v in np.fromfile(f, dtype="<i8", count=2))
+        rows = np.fromfile(f, dtype="<i8", count=nnzb)
+        cols = np.fromfile(f, dtype="<i8", count=nnzb)
+        vals = np.fromfile(f, dtype="<f8", count=9 * nnzb).reshape(nnzb, 3, 3)
+        b = np.fromfile(f, dtype="<f8", count=3 * n)
+        mu = np.fromfile(f, dtype="<f8", count=n)
+        if mu.size != n or f.read(1):
+            raise ValueError(f"{path}: truncated or oversized problem file")
+    off = rows != cols
+    # lower blocks (i >= j) and their transposes above the diagonal
+    R = np.concatenate([rows, cols[off]])
+    C = np.concatenate([cols, rows[off]])
+    V = np.concatenate([vals, np.transpose(vals[off], (0, 2, 1))])
+    ii = (3 * R[:, None, None] + np.arange(3)[None, :, None]) + 0 * np.arange(3)[None, None, :]
+    jj = (3 * C[:, None, None] + np.arange(3)[None, None, :]) + 0 * np.arange(3)[None, :, None]
+    W = sp.csr_matrix((V.reshape(-1), (ii.reshape(-1), jj.reshape(-1))), shape=(3 * n, 3 * n))
+    return W, b, mu

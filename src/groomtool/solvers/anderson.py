@@ -14,6 +14,8 @@ deterministic.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numba import njit
 
@@ -25,6 +27,12 @@ def _dot(a, b):
     for k in range(a.shape[0]):
         s += np.float64(a[k]) * np.float64(b[k])
     return s
+
+
+def norm(x: np.ndarray) -> float:
+    """||x|| of a float64 vector in this thread (np.linalg.norm goes through OpenBLAS, whose threads then
+    spin between the solver's calls: 2x the CPU time for nothing on a 2-core machine, issue 22)."""
+    return math.sqrt(_dot(x, x))
 
 
 @njit(cache=True, fastmath=True)

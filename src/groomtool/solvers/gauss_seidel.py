@@ -36,6 +36,7 @@ from numba import njit
 
 from . import residual as _res
 from .anderson import AndersonMixer
+from .anderson import norm as _anderson_norm
 from .blocks import UpperBlockDelassus, assemble_upper, upper_block_matvec
 from .cones import SOC, law_code
 from .local import FAILED, LOCAL_TOL, NEWTON_MAX_ITER, normalize_block, solve_block
@@ -144,6 +145,35 @@ def sweep_upper(law, indptr, indices, blocks, b, mu, s, An, Ainv, ok, omega, r, 
                 acc[j, 0] += blocks[p, 0, 0] * n0 + blocks[p, 1, 0] * n1 + blocks[p, 2, 0] * n2
                 acc[j, 1] += blocks[p, 0, 1] * n0 + blocks[p, 1, 1] * n1 + blocks[p, 2, 1] * n2
                 acc[j, 2] += blocks[p, 0, 2] * n0 + blocks[p, 1, 2] * n1 + blocks[p, 2, 2] * n2
+    return fails
+
+
+@njit(cache=True, fastmath=_FM)
+def sweep_upper_backward(law, indptr, indices, blocks, b, mu, s, An, Ainv, ok, omega, r, acc, tol, max_newton, atol):
+    """One backward sweep (rows m-1 .. 0) right after sweep_upper: c_i = b_i + acc_i + sum_{j > i} W_ij r_j
+    with r_j (j > i) this sweep's new values and acc_i = sum_{j < i} W_ji^T r_j as the forward sweep left it
+    (rows j < i are not yet touched by this sweep, so acc_i is still exact).  Every block is read once, only
+    gathered.  Forward + backward is symmetric Gauss-Seidel.  Returns local failures."""
+    m = indptr.shape[0] - 1
+    fails = 0
+    for i in range(m - 1, -1, -1):
+        u0 = b[i, 0] + acc[i, 0]
+        u1 = b[i, 1] + acc[i, 1]
+        u2 = b[i, 2] + acc[i, 2]
+        for p in range(indptr[i] + 1, indptr[i + 1]):
+            j = indices[p]
+            x0 = r[j, 0]
+            x1 = r[j, 1]
+            x2 = r[j, 2]
+            u0 += blocks[p, 0, 0] * x0 + blocks[p, 0, 1] * x1 + blocks[p, 0, 2] * x2
+            u1 += blocks[p, 1, 0] * x0 + blocks[p, 1, 1] * x1 + blocks[p, 1, 2] * x2
+            u2 += blocks[p, 2, 0] * x0 + blocks[p, 2, 1] * x1 + blocks[p, 2, 2] * x2
+        st, n0, n1, n2 = _local_update(law, mu, s, An, Ainv, ok, i, u0, u1, u2, r, omega, tol, max_newton, atol)
+        if st == FAILED:
+            fails += 1
+        r[i, 0] = n0
+        r[i, 1] = n1
+        r[i, 2] = n2
     return fails
 
 
@@ -299,6 +329,14 @@ class AssembledOperator:
             float(omega), r, self.acc, tol, max_newton, float(atol),
         )
 
+    def sweep_back(self, law, omega, r, tol=LOCAL_TOL, max_newton=NEWTON_MAX_ITER, atol=0.0) -> int:
+        """A backward sweep over r, valid only right after ``sweep`` on the same r (symmetric GS)."""
+        W = self.W
+        return sweep_upper_backward(
+            law, W.indptr, W.indices, W.blocks, self.b, self.mu, self.s, self.An, self.Ainv, self.ok,
+            float(omega), r, self.acc, tol, max_newton, float(atol),
+        )
+
     def velocity(self, r: np.ndarray) -> np.ndarray:
         out = np.empty_like(r)
         upper_block_matvec(self.W.indptr, self.W.indices, self.W.blocks, r, self.b, out)
@@ -323,6 +361,7 @@ class MatrixFreeOperator:
         self.s, self.An, self.Ainv, self.ok = normalize_diagonal(self.diag)
         self.rho = problem.rho()
         self.v = np.zeros(self.n)
+        self._order_rev = None
 
     @property
     def nbytes(self) -> int:
@@ -345,6 +384,16 @@ class MatrixFreeOperator:
             self._refresh_v(r)
         return sweep_matrix_free(
             law, self.order, H.ptr, H.cols, H.vals, G.ptr, G.cols, G.vals, self.gamma2, self.b, self.mu,
+            self.s, self.An, self.Ainv, self.ok, float(omega), r, self.v, tol, max_newton, float(atol),
+        )
+
+    def sweep_back(self, law, omega, r, tol=LOCAL_TOL, max_newton=NEWTON_MAX_ITER, atol=0.0) -> int:
+        """A sweep in reverse order, continuing from ``sweep`` (v = D H^T r is current): symmetric GS."""
+        H, G = self.H, self.G
+        if self._order_rev is None:
+            self._order_rev = np.ascontiguousarray(self.order[::-1])
+        return sweep_matrix_free(
+            law, self._order_rev, H.ptr, H.cols, H.vals, G.ptr, G.cols, G.vals, self.gamma2, self.b, self.mu,
             self.s, self.An, self.Ainv, self.ok, float(omega), r, self.v, tol, max_newton, float(atol),
         )
 
@@ -450,6 +499,7 @@ def run_gauss_seidel(
     stall_window: int | None = None,
     local_tol_fraction: float = 1e-5,
     give_up: float | None = None,
+    symmetric: bool = False,
     callback=None,
 ) -> GSOutcome:
     """Sweep until residual <= tol (residual.py; checked every ``check_every`` sweeps) or max_sweeps.
@@ -463,6 +513,9 @@ def run_gauss_seidel(
     quarter of the budget, projected_sweeps has said over the last fifth of the run that it needs more
     than ``give_up * max_sweeps`` sweeps (:func:`give_up_projection`; dense redundant contacts,
     docs/solvers.md section 9: the budget would be spent for nothing).
+    symmetric: follow every forward sweep by a backward one (symmetric Gauss-Seidel; each half counts as a
+    sweep).  Measured on the shared generator's 30k problem (issue 22): more sweeps, not fewer (1,210 vs
+    900 with Anderson; backward sweeps run tip to root there), so off by default.
     local_tol_fraction: each local solve stops once its natural map is below this fraction of the
     global target (tol * scale, in the residual's units) or at local.LOCAL_TOL relative, whichever
     comes first (contacts with tiny forces then take one Newton step instead of three or four).  Keep it
@@ -503,6 +556,7 @@ def run_gauss_seidel(
     gf = g.reshape(-1)
     f = np.empty(3 * m)
     best_f = np.inf
+    next_check = check_every
     while sweeps < max_sweeps:
         # g = G(x): one sweep from x
         if mixer is not None and sweeps >= anderson_start:
@@ -516,7 +570,11 @@ def run_gauss_seidel(
             gf = g.reshape(-1)
         fails += op.sweep(code, omega, g, continuing=g is x and sweeps > 0, atol=atol)
         sweeps += 1
-        if sweeps % check_every == 0 or sweeps == max_sweeps:
+        if symmetric and sweeps < max_sweeps:  # the backward half: a sweep of its own in the count
+            fails += op.sweep_back(code, omega, g, atol=atol)
+            sweeps += 1
+        if sweeps >= next_check or sweeps >= max_sweeps:
+            next_check = sweeps + check_every
             res = measure(g)
             history.append((sweeps, res, time.perf_counter() - t0))
             if callback is not None:
@@ -543,7 +601,7 @@ def run_gauss_seidel(
             xf = gf
             continue
         np.subtract(gf, xf, out=f)
-        fn = float(np.linalg.norm(f))
+        fn = _anderson_norm(f)  # not np.linalg.norm: no BLAS threads (issue 22)
         if fn > 10.0 * best_f:
             mixer.reset()
             best_f = fn
