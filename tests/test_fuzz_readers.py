@@ -76,6 +76,16 @@ def BasisCurves "hair"
 HEAD_OBJ = b"v 0 0 0\nv 0.1 0 0\nv 0 0.1 0\nv 0 0 0.1\nf 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4\n"
 
 
+def _tiny_result_arrays() -> dict:
+    """rest.npz arrays of a two-strand result, written by hand (no inversion needed)."""
+    frame = np.array([[0, 1, 0], [-1, 0, 0], [0, 0, 1.0]])
+    return {"strand_offsets": np.array([0, 2, 5]), "element_lengths": np.full(5, 0.01),
+            "root_positions": np.array([[0, 0, 0], [0.01, 0, 0.0]]), "root_frames": np.tile(frame, (2, 1, 1)),
+            "curvatures": np.tile([1.0, 20.0, -5.0], (5, 1)), "rest_curvatures": np.tile([0.5, 25.0, -4.0], (5, 1)),
+            "gravity": np.array([0, -9.81, 0]), "young_modulus": np.array(3e9), "shear_modulus": np.array(1e9),
+            "radius": np.array(4e-5), "density": np.array(1300.0), "friction": np.array(0.3)}
+
+
 def seed_files(tmp_dir) -> dict[str, tuple[str, bytes]]:
     """name -> (suffix, bytes) of small valid files, one or more per reader."""
     rng = np.random.default_rng(0)
@@ -94,6 +104,13 @@ def seed_files(tmp_dir) -> dict[str, tuple[str, bytes]]:
     for fmt in ("ascii", "binary_little_endian", "binary_big_endian"):
         seeds[f"ply-{fmt}"] = (".ply", _ply(groom.points, groom.offsets, fmt, faces=fmt != "binary_big_endian"))
     seeds["usda"] = (".usda", USDA)
+    try:  # our own USD export: curves, groom primvars, rest data, discrete rod data
+        from groomtool.io.usd import write_usd
+    except ImportError:
+        pass
+    else:
+        write_usd(_tiny_result_arrays(), tmp_dir / "ours.usda", per_element=2)
+        seeds["usda-ours"] = (".usda", (tmp_dir / "ours.usda").read_bytes())
     seeds["head-obj"] = (".obj", HEAD_OBJ)
     return seeds
 
@@ -202,14 +219,14 @@ def test_seeds_are_valid(tmp_path):
 
 
 NAMES = ["obj", "obj-split", "obj-bare", "data", "hair", "ply-ascii", "ply-binary_little_endian",
-         "ply-binary_big_endian", "usda", "head-obj"]
+         "ply-binary_big_endian", "usda", "usda-ours", "head-obj"]
 
 
 @pytest.mark.parametrize("name", NAMES)
 @settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(ops=OPS, repair=st.booleans(), strand_length=st.sampled_from([None, 3, 7]))
 def test_fuzzed_file_is_a_groom_or_a_clear_error(tmp_path, name, ops, repair, strand_length):
-    if name == "usda":
+    if name.startswith("usda"):
         pytest.importorskip("pxr")
     suffix, data = seeds()[name]
     path = tmp_path / f"fuzz{suffix}"

@@ -506,7 +506,10 @@ def read_usd(path, scale: float = 1.0, up: str = "y", repair: bool = False, *, p
                                          "up_axis": up, "curve_types": sorted(kinds)}}
     groom = Groom(points, offsets, up=up, source=source, metadata=metadata)
     groom = validate(groom, repair=repair, stored_dtype=np.float32)  # points are point3f[]
-    rest = _rest_data(stage, chosen[0], offsets) if len(chosen) == 1 else {}
+    try:
+        rest = _rest_data(stage, chosen[0], offsets) if len(chosen) == 1 else {}
+    except (TypeError, ValueError, IndexError) as exc:  # primvars of the wrong type or length
+        raise GroomError(f"{source}: {chosen[0].GetPath()}: malformed groom primvars or rest data ({exc})") from None
     groom.metadata["rest_data"] = {} if "repairs" in groom.metadata else rest
     return groom
 
@@ -560,8 +563,11 @@ def _curve_points(prim, source: str):
     where = f"{source}: {prim.GetPath()}"
     if pts is None or cnt is None:
         raise GroomError(f"{where}: BasisCurves without points or curveVertexCounts")
-    pts = np.asarray(pts, dtype=np.float64).reshape(-1, 3)
-    cnt = np.asarray(cnt, dtype=np.int64).reshape(-1)
+    try:
+        pts = np.asarray(pts, dtype=np.float64).reshape(-1, 3)
+        cnt = np.asarray(cnt, dtype=np.int64).reshape(-1)
+    except (TypeError, ValueError) as exc:  # an unregistered value type, a ragged array
+        raise GroomError(f"{where}: points or curveVertexCounts are not numeric arrays ({exc})") from None
     if np.any(cnt < 0) or cnt.sum() != len(pts):
         raise GroomError(f"{where}: curveVertexCounts add up to {int(cnt.sum())} but there are {len(pts)} points")
     time = Usd.TimeCode.Default() if points_attr.HasAuthoredValue() and not points_attr.GetNumTimeSamples() \
