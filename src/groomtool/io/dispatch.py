@@ -26,13 +26,20 @@ def _read_usd(path, scale, up, repair):
     return usd.read_usd(path, scale=scale, up=up, repair=repair)
 
 
-READERS = {".obj": read_obj, ".ply": read_ply, ".data": read_data, ".hair": read_hair}
+def _read_alembic(path, scale, up, repair):
+    """Hook: ``groomtool.io.alembic.read_alembic`` (needs the optional alembic3d package; says so)."""
+    from .alembic import read_alembic
+
+    return read_alembic(path, scale=scale, up=up, repair=repair)
+
+
+READERS = {".obj": read_obj, ".ply": read_ply, ".data": read_data, ".hair": read_hair, ".abc": _read_alembic}
 READERS.update(dict.fromkeys(USD_SUFFIXES, _read_usd))
 SPLITTABLE = (".obj", ".ply")  # formats of bare vertices that strand_length applies to
 
 
 def load_groom(path, units="m", up: str = "y", repair: bool = False, strand_length=None) -> Groom:
-    """Read a groom (.obj, .ply, .data, .hair; .usd* with usd-core) into metres, validated.
+    """Read a groom (.obj, .ply, .data, .hair; .usd* with usd-core; .abc with alembic3d) into metres, validated.
 
     units: "m", "cm", "mm" or metres per file unit.  up: the file's up axis, "y" or "z".
     repair: drop strands with < 2 vertices and repeated points instead of failing (recorded in
