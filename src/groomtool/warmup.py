@@ -20,9 +20,11 @@ from pathlib import Path
 FIRST_RUN_MODULES = ("groomtool.rods.superhelix", "groomtool.fit.error", "groomtool.fit.helix",
                      "groomtool.fit.sampling", "groomtool.fit.state")
 COLD_FRACTION = 0.5  # a first run: at least half of those kernels are not cached
-# seconds the warm-up compiled for with an empty cache (bundled example, --contacts head), for the
-# estimate only: the real time depends on the machine and its load (docs/cli.md)
-FIRST_RUN_COMPILE_S = 60
+# seconds the warm-up compiled for with an empty NUMBA_CACHE_DIR (bundled example, --contacts head):
+# 282 s on 2 CPU cores shared with other jobs (the whole first run: 314 s, of which 2.1 s inversion;
+# without the warm-up 364 s, the fit bar at 0 % for 74 s).  An estimate only: it scales with the
+# machine and its load
+FIRST_RUN_COMPILE_S = 280
 
 
 def kernel_modules() -> list[str]:
@@ -98,8 +100,8 @@ def announce_and_warm(params=None, with_head: bool = True, stream=None) -> bool:
     if total == 0 or cold < COLD_FRACTION * total:  # a few cold kernels (an edited module): compiled lazily
         return False
     estimate = max(10, int(round(FIRST_RUN_COMPILE_S * cold / total, -1)))
-    print(f"groom: compiling kernels (first run only, ~{estimate} s on an idle machine); later runs load "
-          "them from numba's cache", file=stream, flush=True)
+    print(f"groom: compiling kernels (first run only, up to ~{estimate} s, less on a fast idle machine); "
+          "later runs load them from numba's cache", file=stream, flush=True)
     took = warm_up(params, with_head)
     print(f"groom: kernels compiled in {took:.0f} s", file=stream, flush=True)
     return True
