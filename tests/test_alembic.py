@@ -229,3 +229,14 @@ def test_groom_export_format_abc(result, tmp_path, capsys):
     groom = load_groom(tmp_path / "groom.abc", units="cm")
     assert np.array_equal(groom.offsets, fields.sample(fields.load_arrays(result)).offsets)
     assert main(["export", str(tmp_path), "--format", "abc", "-o", str(tmp_path / "x.usd")]) != EXIT_OK
+
+
+@needs_abc
+def test_invert_format_abc(tmp_path):
+    from groomtool.cli.main import EXIT_OK, main
+    from groomtool.examples import write_example
+
+    groom_path, _ = write_example(tmp_path, n_strands=4, seed=5)
+    out = tmp_path / "out"
+    assert main(["invert", str(groom_path), "--format", "npz", "--format", "abc", "-q", "-o", str(out)]) == EXIT_OK
+    assert load_groom(out / "groom.abc", units="cm").n_strands == 4

@@ -79,7 +79,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     inv = sub.add_parser("invert", help="compute rest curvatures that hold the groom in place",
                          epilog=EPILOG_INVERT, formatter_class=argparse.RawDescriptionHelpFormatter)
-    inv.add_argument("input", help="groom file: .obj (polylines), .data (USC-HairSalon), .hair (Cem Yuksel), .ply (edges)")
+    inv.add_argument("input", help="groom file: .obj (polylines), .data (USC-HairSalon), .hair (Cem Yuksel), .ply (edges), "
+                                   ".usd/.usda/.usdc/.usdz (BasisCurves), .abc (Alembic curves; pip install "
+                                   "'groomtool[alembic]')")
     inv.add_argument("--head", default=None, help="head mesh (.obj, .ply, .stl), same units as the input")
     inv.add_argument("-o", "--output", default="groom_out", help="output directory (default ./groom_out)")
     _add_input_options(inv)
@@ -111,7 +113,7 @@ def build_parser() -> argparse.ArgumentParser:
     inv.add_argument("--rod-segments", type=int, default=None, metavar="N",
                      help="resolution of the discrete (Cosserat/DER) rest data: N equal segments per strand "
                           "(default: the input's own vertices)")
-    inv.add_argument("--format", action="append", choices=["npz", "obj", "json", "usd", "vtp", "hair"], default=None,
+    inv.add_argument("--format", action="append", choices=["npz", "obj", "json", "usd", "abc", "vtp", "hair"], default=None,
                      help="output formats (repeatable; default npz, obj, json)")
     _add_material_options(inv)
     inv.add_argument("-q", "--quiet", action="store_true", help="no progress bars and no summary")
@@ -264,7 +266,7 @@ def cmd_invert(args) -> int:
         return EXIT_NOT_CONVERGED
     result.report["input_units"] = args.units
     formats = tuple(args.format) if args.format else ("npz", "obj", "json")
-    extra = [f for f in formats if f in ("usd", "vtp", "hair")]
+    extra = [f for f in formats if f in ("usd", "abc", "vtp", "hair")]
     written = write_result(result, args.output, formats=formats,
                            extra=(lambda stage: export_cmd.export_formats(result, stage, extra)) if extra else None)
     if not args.quiet:
