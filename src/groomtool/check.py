@@ -10,6 +10,18 @@ mode as the inversion (report.json) unless overridden.  Measured after ``seconds
     tip excursion            max over the steps of |x_tip(t) - x_tip(0)|   (m)
     curvature change         max_j | |kappa_j(T)| - |kappa_j(0)| | / max_j |kappa_j(0)|,
                              |kappa_j| = sqrt(kappa1^2 + kappa2^2) on element j (the curl profile)
+
+Per-strand materials: when rest.npz carries ``strand_young_modulus`` and/or ``strand_shear_modulus``
+(S,) (Pa; written by an inversion that stiffened strands, with ``stiffness_factor`` (S,)), the
+inverted run uses K_s = l_j (G_s 2I, E_s I, E_s I) per strand (the moduli already include the
+factor); with only ``stiffness_factor``, K_s = factor_s x the scalar material's.  The naive run keeps
+the scalar material: it is what the user's groom does without inversion.
+
+Subset (``strands=n``): n strands drawn at random (numpy default_rng(seed), without replacement)
+plus every strand sharing a contact with one of them (one level: the partners' own partners are
+left out), from the inversion's contacts, else from a detection on the groomed shape.  Both runs
+simulate that set; drift and curvature figures are over the n drawn strands only (the partners
+support them but miss some of their own supports).
 """
 
 from __future__ import annotations
@@ -41,6 +53,46 @@ class InvertedGroom:
     up: str
     stiffness_ratio: np.ndarray | None = None  # per strand; >= 1: unstable without contacts (stability.py)
     contact_forces: tuple | None = None  # (contacts record, forces (m, 3) N) of the inversion
+    strand_stiffness: np.ndarray | None = None  # (S, 3) per unit length (GJ_s, EI_s, EI_s), per-strand materials
+    stiffness_factor: np.ndarray | None = None  # (S,) as written by the inversion, if any
+
+    def per_strand(self) -> bool:
+        """True when some strand's stiffness differs from the scalar material's."""
+        if self.strand_stiffness is None:
+            return False
+        scalar = np.asarray(self.material.stiffness_diag)[None, :]
+        return not np.allclose(self.strand_stiffness, scalar, rtol=1e-12, atol=0.0)
+
+    def stiffness(self) -> np.ndarray | None:
+        """K (S, N, 3) = l_j (GJ_s, EI_s, EI_s) of the per-strand materials, None without them."""
+        if self.strand_stiffness is None:
+            return None
+        return self.helix.lengths[..., None] * self.strand_stiffness[:, None, :]
+
+    def subset(self, strands) -> "InvertedGroom":
+        """The same inversion restricted to ``strands`` (indices, in that order); contacts between them kept."""
+        idx = np.asarray(strands, dtype=np.int64)
+        h = self.helix
+        helix = sh.SuperHelix(h.root_positions[idx], h.root_frames[idx], h.lengths[idx], h.curvatures[idx],
+                              h.n_elements[idx])
+        forces = None
+        if self.contact_forces is not None:
+            record, f = self.contact_forces
+            new_index = np.full(h.n_strands, -1, dtype=np.int64)
+            new_index[idx] = np.arange(len(idx))
+            a = np.asarray(record.strand_a)
+            b = np.asarray(record.strand_b)
+            keep = (new_index[a] >= 0) & ((b < 0) | (new_index[np.maximum(b, 0)] >= 0))
+            forces = (SimpleNamespace(strand_a=new_index[a[keep]], s_a=np.asarray(record.s_a)[keep],
+                                      strand_b=np.where(b[keep] < 0, b[keep], new_index[np.maximum(b[keep], 0)]),
+                                      s_b=np.asarray(record.s_b)[keep]), f[keep])
+
+        def pick(x):
+            return None if x is None else np.asarray(x)[idx]
+
+        return replace(self, helix=helix, rest_curvatures=self.rest_curvatures[idx], contact_forces=forces,
+                       stiffness_ratio=pick(self.stiffness_ratio), strand_stiffness=pick(self.strand_stiffness),
+                       stiffness_factor=pick(self.stiffness_factor))
 
 
 def load_inverted(outdir) -> InvertedGroom:
@@ -75,6 +127,7 @@ def load_inverted(outdir) -> InvertedGroom:
     if radius is None or not np.isfinite(radius):  # NaN: written without contacts
         radius = report.get("contacts", {}).get("radius_m") or params.get("contact_radius_m")
     ratio = np.asarray(arrays.get("stiffness_ratio", np.zeros(0)), dtype=np.float64)
+    strand_stiffness, factor = per_strand_stiffness(arrays, material, helix.n_strands)
     forces = None
     if len(arrays.get("contact_forces", ())):
         record = SimpleNamespace(strand_a=np.asarray(arrays["contact_strand_a"]), s_a=np.asarray(arrays["contact_s_a"]),
@@ -83,7 +136,35 @@ def load_inverted(outdir) -> InvertedGroom:
     return InvertedGroom(helix=helix, rest_curvatures=rest, material=material, gravity=gravity, head=head,
                          contacts=contacts, contact_radius=radius, source=str(arrays.get("source", outdir)),
                          up=fields.up_axis(arrays), stiffness_ratio=ratio if ratio.size == helix.n_strands else None,
-                         contact_forces=forces)
+                         contact_forces=forces, strand_stiffness=strand_stiffness, stiffness_factor=factor)
+
+
+def per_strand_stiffness(arrays: dict, material: Material, n_strands: int):
+    """((S, 3) per-unit-length (GJ_s, EI_s, EI_s) or None, stiffness_factor (S,) or None) from rest.npz.
+
+    E_s = strand_young_modulus (else E), G_s = strand_shear_modulus (else G E_s / E); without either
+    array but with stiffness_factor: (GJ, EI, EI) x factor_s.  Arrays of the wrong length are an error."""
+
+    def per_strand(name):
+        if name not in arrays:
+            return None
+        x = np.asarray(arrays[name], dtype=np.float64).reshape(-1)
+        if x.size != n_strands:
+            raise ValueError(f"rest.npz: {name} has {x.size} values for {n_strands} strands")
+        if not np.all(np.isfinite(x) & (x > 0)):
+            bad = int(np.flatnonzero(~(np.isfinite(x) & (x > 0)))[0])
+            raise ValueError(f"rest.npz: {name} of strand {bad} is {x[bad]} (must be positive)")
+        return x
+
+    E_s, G_s, factor = (per_strand(n) for n in ("strand_young_modulus", "strand_shear_modulus", "stiffness_factor"))
+    I = material.second_moment
+    if E_s is None and G_s is None:
+        if factor is None:
+            return None, None
+        return factor[:, None] * np.asarray(material.stiffness_diag)[None, :], factor
+    E_s = np.full(n_strands, material.young_modulus) if E_s is None else E_s
+    G_s = material.G * E_s / material.young_modulus if G_s is None else G_s
+    return np.stack([G_s * 2.0 * I, E_s * I, E_s * I], axis=1), factor
 
 
 def tip_drifts(tips: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -106,11 +187,15 @@ def _stats(values: np.ndarray) -> dict:
     return {"max": float(values.max()) if values.size else 0.0, "mean": float(values.mean()) if values.size else 0.0}
 
 
-def run_summary(result, helix0: sh.SuperHelix, stiffness_ratio=None) -> dict:
+def run_summary(result, helix0: sh.SuperHelix, stiffness_ratio=None, strands=None) -> dict:
     """The figures of one simulation for check.json (drift also split by stability in isolation when
-    the stiffness ratios are known: a strand with ratio >= 1 can only be held by contacts)."""
+    the stiffness ratios are known: a strand with ratio >= 1 can only be held by contacts); over
+    ``strands`` (indices) only when given."""
     drift, excursion = tip_drifts(result.tips)
     curv = curvature_profile_change(helix0, result.final.curvatures)
+    if strands is not None:
+        drift, excursion, curv = drift[strands], excursion[strands], curv[strands]
+        stiffness_ratio = None if stiffness_ratio is None else np.asarray(stiffness_ratio)[strands]
     st = result.stats
     split = {}
     if stiffness_ratio is not None:
@@ -126,33 +211,92 @@ def run_summary(result, helix0: sh.SuperHelix, stiffness_ratio=None) -> dict:
         "contacts_per_step": _stats(st["contacts_per_step"]),
         "modified_step_matrices": int(st["modified_step_matrices"]),
         "rate_limited_strand_steps": int(st["rate_limited_strand_steps"]),
-        "solver": {"failures": int(st["solver_failures"]),
+        "solver": {"failures": int(st["solver_failures"]), "solves": len(st["solver_residuals"]),
+                   "failed_steps": [int(k) for k in st.get("failed_steps", [])][:100],
+                   "worst_failed_residual": float(max(st.get("failed_residuals", []), default=0.0)),
                    "max_residual": float(max(st["solver_residuals"], default=0.0)),
                    "mean_iterations": float(np.mean(st["solver_iterations"])) if st["solver_iterations"] else 0.0},
+        "detection": {"passes": int(st.get("detection_passes", 0)), "reused": int(st.get("detection_reused", 0))},
         "timings_s": {k: float(v) for k, v in result.timings.items()},
     }
 
 
-def check_groom(outdir, seconds: float = 1.0, dt: float = 1.0 / 240.0, contacts: str | None = None,
-                params: SimulationParams | None = None, progress: bool = False) -> dict:
-    """Simulate the inverted and the naive groom from the groomed shape; returns the check report."""
+def choose_strands(inv: InvertedGroom, n: int, seed: int = 0, radius: float | None = None,
+                   contacts: str = "all") -> tuple[np.ndarray, np.ndarray]:
+    """(chosen, simulated): n strands drawn with numpy default_rng(seed) (sorted), and those plus every
+    strand sharing a contact with one of them (the inversion's contacts, else a detection on the
+    groomed shape at ``radius``), sorted."""
+    S = inv.helix.n_strands
+    if not 1 <= n:
+        raise ValueError(f"--strands must be >= 1, got {n}")
+    chosen = np.sort(np.random.default_rng(seed).choice(S, size=min(n, S), replace=False))
+    if n >= S:
+        return chosen, chosen
+    if inv.contact_forces is not None:
+        a, b = np.asarray(inv.contact_forces[0].strand_a), np.asarray(inv.contact_forces[0].strand_b)
+    elif contacts == "all":
+        from .contact import DEFAULT_CONTACT_RADIUS, detect_strand_contacts
+
+        pts, offsets, _, arc = sh.sample(inv.helix, 8)
+        found = detect_strand_contacts(pts, offsets, arc, DEFAULT_CONTACT_RADIUS if radius is None else radius)
+        a, b = found.strand_a, found.strand_b
+    else:
+        a = b = np.zeros(0, dtype=np.int64)
+    pair = b >= 0
+    a, b = a[pair], b[pair]
+    picked = np.zeros(S, dtype=bool)
+    picked[chosen] = True
+    partners = np.concatenate([b[picked[a]], a[picked[b]]])
+    return chosen, np.union1d(chosen, partners)
+
+
+def check_groom(outdir, seconds: float = 1.0, dt: float | None = None, contacts: str | None = None,
+                params: SimulationParams | None = None, progress: bool = False, strands: int | None = None,
+                seed: int = 0) -> dict:
+    """Simulate the inverted and the naive groom from the groomed shape; returns the check report.
+
+    ``params`` carries the options (dt, contacts and contact_radius override it on a copy when given;
+    unset, the inversion's contact mode and radius are used); ``strands``: check a random subset
+    with its contact partners (module docstring); ``progress``: a bar and a run-time estimate."""
+    from .simulate_progress import StepProgress
+
     t0 = time.perf_counter()
     inv = load_inverted(outdir)
-    mode = contacts or inv.contacts
     base = params or SimulationParams()
-    base = replace(base, dt=dt, contacts=mode,
+    mode = contacts or inv.contacts
+    base = replace(base, dt=base.dt if dt is None else dt, contacts=mode,
                    contact_radius=base.contact_radius if base.contact_radius is not None else inv.contact_radius)
+    dt = base.dt
+    total_strands = int(inv.helix.n_strands)
+    chosen = None
+    if strands is not None:
+        picked, simulated = choose_strands(inv, strands, seed, base.contact_radius, mode)
+        inv = inv.subset(simulated)
+        chosen = np.searchsorted(simulated, picked)
+    steps = int(round(seconds / dt))
     report = {"input": str(outdir), "strands": int(inv.helix.n_strands), "elements": int(inv.helix.n_elements.sum()),
-              "seconds": float(seconds), "dt": float(dt), "steps": int(round(seconds / dt)), "contacts": mode,
+              "seconds": float(seconds), "dt": float(dt), "steps": steps, "contacts": mode,
               "contact_radius_m": base.contact_radius, "head": inv.head is not None,
-              "unstable_in_isolation": None if inv.stiffness_ratio is None else int(np.sum(inv.stiffness_ratio >= 1.0))}
-    for name, rest in (("inverted", inv.rest_curvatures), ("naive", inv.helix.curvatures.copy())):
-        result = simulate(inv.helix, rest, inv.material, inv.gravity, head=inv.head, seconds=seconds, dt=dt,
-                          contacts=mode, frames_per_second=1.0, params=base, progress=progress,
-                          warm_start=inv.contact_forces if name == "inverted" else None)
-        report[name] = run_summary(result, inv.helix, inv.stiffness_ratio)
-        if report["contact_radius_m"] is None:
-            report["contact_radius_m"] = result.stats["contact_radius"]
+              "unstable_in_isolation": None if inv.stiffness_ratio is None else int(np.sum(inv.stiffness_ratio >= 1.0)),
+              "per_strand_materials": inv.per_strand()}
+    if chosen is not None:
+        report["subset"] = {"groom_strands": total_strands, "checked": int(len(chosen)), "seed": int(seed),
+                            "simulated_with_partners": int(inv.helix.n_strands),
+                            "checked_strands": [int(k) for k in np.asarray(simulated)[chosen]]}
+    bar = StepProgress([("inverted", steps), ("naive", steps)], enabled=progress)
+    try:
+        for name, rest, stiffness in (("inverted", inv.rest_curvatures, inv.stiffness()),
+                                      ("naive", inv.helix.curvatures.copy(), None)):
+            result = simulate(inv.helix, rest, inv.material, inv.gravity, head=inv.head, seconds=seconds,
+                              frames_per_second=1.0, params=base, progress=bar, stiffness=stiffness,
+                              warm_start=inv.contact_forces if name == "inverted" else None)
+            report[name] = run_summary(result, inv.helix, inv.stiffness_ratio, chosen)
+            if report["contact_radius_m"] is None:
+                report["contact_radius_m"] = result.stats["contact_radius"]
+            if name == "inverted":
+                bar.next_run()
+    finally:
+        bar.close()
     naive = report["naive"]["max_tip_drift_m"]
     report["drift_ratio"] = report["inverted"]["max_tip_drift_m"] / naive if naive > 0 else 0.0
     report["timings_s"] = {"total": time.perf_counter() - t0}
@@ -177,13 +321,30 @@ def summary(report: dict) -> str:
         return (f"  {name:<9} tip drift max {r['max_tip_drift_m'] * 1e3:.4f} mm, mean {r['mean_tip_drift_m'] * 1e3:.4f} mm;"
                 f" curvature change max {r['curvature_profile_change']['max'] * 100:.3f} %")
 
-    lines = [f"groom check: {report['strands']} strands, {report['seconds']:g} s simulated at "
+    sub = report.get("subset")
+    what = (f"{sub['checked']} of {sub['groom_strands']} strands (seed {sub['seed']}; simulated with their contact "
+            f"partners: {sub['simulated_with_partners']})" if sub else f"{report['strands']} strands")
+    lines = [f"groom check: {what}, {report['seconds']:g} s simulated at "
              f"dt = {report['dt']:.4g} s ({report['steps']} steps), contacts {report['contacts']}",
              run("inverted", inv), run("naive", nai),
              f"  ratio     inverted / naive max drift = {report['drift_ratio']:.2e}"]
+    if report.get("per_strand_materials"):
+        lines.append("  material  inverted run with the per-strand stiffness of rest.npz; naive run with the scalar material")
+    lines.append("  contact   " + "; ".join(_solver_line(name, report[name]["solver"]) for name in ("inverted", "naive")))
     if report.get("unstable_in_isolation"):
         lines.append(f"  note      {report['unstable_in_isolation']} strands are unstable without contacts (stiffness "
                      f"ratio >= 1); their inverted max drift: {inv['max_tip_drift_unstable_strands_m'] * 1e3:.4f} mm")
     lines.append(f"  time      {report['timings_s']['total']:.1f} s ({inv['timings_s']['per_step'] * 1e3:.1f} ms/step "
                  f"inverted, {nai['timings_s']['per_step'] * 1e3:.1f} ms/step naive)")
     return "\n".join(lines)
+
+
+def _solver_line(name: str, solver: dict) -> str:
+    """'inverted: 0 of 240 solves failed' or '... 3 of 240 failed (worst residual 2e-06, steps 4, 7, 9)'."""
+    failed = solver["failures"]
+    text = f"{name}: {failed} of {solver.get('solves', '?')} contact solves failed"
+    if failed:
+        steps = solver.get("failed_steps", [])
+        shown = ", ".join(str(k) for k in steps[:5]) + (", ..." if len(steps) > 5 else "")
+        text += f" (worst residual {solver.get('worst_failed_residual', solver['max_residual']):.1e}, steps {shown})"
+    return text

@@ -1,0 +1,364 @@
+"""Contact tracking for the simulator: detection (kept while nothing moved), persistence, the
+velocity-level targets and the warm start of the contact solve (docs/simulation.md section 3).
+
+**Detection with a skin.**  Contacts are detected on the helices sampled ``samples_per_element`` times
+per element with the thresholds 2 (r_c + m_s) (strand/strand) and r_c + m_h (head), m the speculative
+margins.  The detection pass runs with thresholds grown by a skin delta (strand/strand + delta,
+head + delta) and its candidates are kept.  At a later step, with D the largest displacement of any
+sample since that pass (in the head's frame), a pair now within its threshold was within
+threshold + 2 D + 2 (m_s - m_s0) (strand/strand) or + D + (m_h - m_h0) (head) at the pass, hence a
+candidate, as long as
+
+    D + max(0, m_s - m_s0) <= delta / 2   and   D + max(0, m_h - m_h0) <= delta.
+
+Then the candidates are re-evaluated on the current samples as the detection builds them
+(revisit: strand/strand closest points of the candidate's segment pair, so the normal stays
+orthogonal to both axes; head contacts at their arc length, the surface queried; e_T1 keeps its
+previous direction) and filtered by the current thresholds instead of a new detection pass.  Head
+contacts keep the pass's arc lengths: they slide by at most delta / 2 before the next pass.  Otherwise a new pass runs.  delta = 0 detects every step (the previous
+behaviour); at rest (an inverted groom) one pass serves the whole run.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .rods import superhelix as sh
+
+
+# --------------------------------------------------------------------------- pure helpers
+def contact_gaps(contacts, radius: float) -> np.ndarray:
+    """gap = axis distance - 2 r_c (strand/strand) or signed axis-to-surface distance - r_c (head);
+    negative inside the contact thickness."""
+    head = np.asarray(contacts.strand_b) < 0
+    return np.asarray(contacts.distance) - np.where(head, radius, 2.0 * radius)
+
+
+def match_contacts(old, new, arc_tolerance: float) -> np.ndarray:
+    """For every contact of ``new`` the index of the same contact in ``old`` (same strands, arc lengths
+    within ``arc_tolerance`` in |ds_a| + |ds_b|, the closest), or -1."""
+    m_new = len(new.strand_a)
+    out = np.full(m_new, -1, dtype=np.int64)
+    if old is None or len(old.strand_a) == 0 or m_new == 0:
+        return out
+    K = int(max(np.max(old.strand_a), np.max(new.strand_a), np.max(old.strand_b), np.max(new.strand_b))) + 2
+    key_old = np.asarray(old.strand_a, np.int64) * K + np.asarray(old.strand_b, np.int64) + 1
+    key_new = np.asarray(new.strand_a, np.int64) * K + np.asarray(new.strand_b, np.int64) + 1
+    order = np.argsort(key_old, kind="stable")
+    sorted_keys = key_old[order]
+    lo = np.searchsorted(sorted_keys, key_new, "left")
+    hi = np.searchsorted(sorted_keys, key_new, "right")
+    sb_old = np.nan_to_num(np.asarray(old.s_b, dtype=np.float64))
+    sb_new = np.nan_to_num(np.asarray(new.s_b, dtype=np.float64))
+    best = np.full(m_new, np.inf)
+    for k in range(int(np.max(hi - lo, initial=0))):
+        idx = lo + k
+        valid = idx < hi
+        j = order[np.minimum(idx, len(order) - 1)]
+        d = np.abs(new.s_a - old.s_a[j]) + np.abs(sb_new - sb_old[j])
+        better = valid & (d <= arc_tolerance) & (d < best)
+        best[better] = d[better]
+        out[better] = j[better]
+    return out
+
+
+def normal_velocity_targets(gap, allowed, dt: float, push_rate: float, max_push_speed: float) -> np.ndarray:
+    """ubar per contact: -gap/h ahead of touching, 0 within the allowed depth, a bounded push beyond."""
+    gap = np.asarray(gap, dtype=np.float64)
+    excess = -gap - allowed
+    push = np.minimum(push_rate * np.maximum(excess, 0.0) / dt, max_push_speed)
+    return np.where(gap > 0.0, -gap / dt, np.where(excess > 0.0, push, 0.0))
+
+
+def contact_thresholds(contacts, radius: float, margins: tuple[float, float]) -> np.ndarray:
+    """Distance below which a contact is in the problem: r_c + m_h (head), 2 (r_c + m_s) (strand/strand)."""
+    head = np.asarray(contacts.strand_b) < 0
+    return np.where(head, radius + margins[0], 2.0 * (radius + margins[1]))
+
+
+def reevaluate(helix: sh.SuperHelix, kin, contacts, head_surface, transform=None, tangents=None):
+    """The contacts' geometry at their arc lengths on ``helix``: (point_a, point_b, normal, frame,
+    distance).  Head contacts: closest point of the head surface (queried in the head's rest frame
+    when ``transform`` = (R, T)); strand/strand: the two axis points, normal from b to a (the old
+    normal where they coincide).  Frames: e_T1 along ``tangents`` (default the strand tangent)."""
+    from .contact import contact_frames
+
+    x_a, R_a = sh.evaluate(helix, contacts.strand_a, contacts.s_a, kin)
+    head = contacts.strand_b < 0
+    point_b = np.empty_like(x_a)
+    normal = np.empty_like(x_a)
+    dist = np.empty(len(contacts.strand_a))
+    if np.any(head):
+        x = x_a[head]
+        if transform is not None:
+            R, T = transform
+            d, c, n, _ = head_surface.query((x - T) @ R)
+            c, n = c @ R.T + T, n @ R.T
+        else:
+            d, c, n, _ = head_surface.query(x)
+        dist[head], point_b[head], normal[head] = d, c, n
+    if np.any(~head):
+        x_b, _ = sh.evaluate(helix, contacts.strand_b[~head], contacts.s_b[~head], kin)
+        gap = x_a[~head] - x_b
+        d = np.linalg.norm(gap, axis=1)
+        n = np.where(d[:, None] > 1e-12, gap / np.maximum(d, 1e-300)[:, None], contacts.normal[~head])
+        dist[~head], point_b[~head], normal[~head] = d, x_b, n
+    hint = R_a[:, :, 0] if tangents is None else tangents
+    frames = contact_frames(normal, hint) if len(dist) else np.zeros((0, 3, 3))
+    return x_a, point_b, normal, frames, dist
+
+
+def polyline_segments(offsets: np.ndarray, arc: np.ndarray, strand, s) -> tuple[np.ndarray, np.ndarray]:
+    """Segment (first vertex) and parameter in [0, 1] of arc lengths s on the sampled polylines."""
+    strand = np.asarray(strand, dtype=np.int64)
+    s = np.asarray(s, dtype=np.float64)
+    span = float(np.max(arc, initial=0.0)) + 1.0
+    vertex_strand = np.repeat(np.arange(len(offsets) - 1), np.diff(offsets))
+    key = arc + vertex_strand * span
+    v = np.searchsorted(key, s + strand * span, side="right") - 1
+    v = np.clip(v, offsets[strand], offsets[strand + 1] - 2)
+    seg = arc[v + 1] - arc[v]
+    t = np.clip((s - arc[v]) / np.where(seg > 0, seg, 1.0), 0.0, 1.0)
+    return v, t
+
+
+def closest_on_segments(pts, offsets, strand_a, va, at_vertex_a, strand_b, vb, at_vertex_b):
+    """Closest points between segments va and vb (the candidate's own pair, as the detection found it;
+    where an arc length sits on a vertex, the segment before it is tried too: the detection may have
+    placed it at that segment's end): (s, t, point_a, point_b, distance, ia, ib)."""
+    from .contact import segment_closest_points
+
+    out = None
+    for da, db in ((0, 0), (-1, 0), (0, -1), (-1, -1)):
+        allowed = np.ones(len(va), dtype=bool)
+        if da:
+            allowed &= at_vertex_a & (va > offsets[strand_a])
+        if db:
+            allowed &= at_vertex_b & (vb > offsets[strand_b])
+        if out is not None and not np.any(allowed):
+            continue
+        ia, ib = va + da * allowed, vb + db * allowed
+        s, t, c1, c2, d = segment_closest_points(pts[ia], pts[ia + 1], pts[ib], pts[ib + 1])
+        if out is None:
+            out = [s, t, c1, c2, d, ia, ib]
+            continue
+        better = allowed & (d < out[4])
+        for k, x in enumerate((s, t, c1, c2, d, ia, ib)):
+            out[k] = np.where(better[:, None], x, out[k]) if x.ndim == 2 else np.where(better, x, out[k])
+    return tuple(out)
+
+
+def revisit(pts: np.ndarray, offsets: np.ndarray, arc: np.ndarray, candidates, head_surface):
+    """The candidates' geometry on the current samples, built as the detection builds it.
+
+    Strand/strand: the closest points of the candidate's segment pair (segment_closest_points,
+    normals by pair_normals): the contact follows a strand sliding along the other, its normal stays
+    orthogonal to both axes (a pair is not moved to its neighbours: the detection's minima are its
+    own, and two candidates must not become one contact).  Head: the point at the candidate's arc
+    length on the polyline, the head's closest point and normal (HeadSurface.query).  e_T1 keeps the
+    last frame's direction.  On unchanged samples this is the detection's own result (to round-off)."""
+    from .contact import Contacts, contact_frames
+    from .contact.detect import pair_normals
+
+    c = candidates
+    m = len(c.strand_a)
+    if m == 0:
+        return c
+    va, ta = polyline_segments(offsets, arc, c.strand_a, c.s_a)
+    point_a = pts[va] + ta[:, None] * (pts[va + 1] - pts[va])
+    s_a, s_b = c.s_a.copy(), c.s_b.copy()
+    head = c.strand_b < 0
+    point_b = np.empty_like(point_a)
+    normal = np.empty_like(point_a)
+    dist = np.empty(m)
+    if np.any(head):
+        d, closest, n, _ = head_surface.query(point_a[head])
+        dist[head], point_b[head], normal[head] = d, closest, n
+    pair = ~head
+    if np.any(pair):
+        vb, tb = polyline_segments(offsets, arc, c.strand_b[pair], c.s_b[pair])
+        s, t, c1, c2, d, ia, ib = closest_on_segments(pts, offsets, c.strand_a[pair], va[pair], ta[pair] == 0.0,
+                                                      c.strand_b[pair], vb, tb == 0.0)
+        s_a[pair] = arc[ia] + s * (arc[ia + 1] - arc[ia])
+        s_b[pair] = arc[ib] + t * (arc[ib + 1] - arc[ib])
+        point_a[pair], point_b[pair], dist[pair] = c1, c2, d
+        normal[pair] = pair_normals(c1, c2, pts[ia + 1] - pts[ia], pts[ib + 1] - pts[ib], d)
+    frames = contact_frames(normal, c.frame[:, 1])
+    return Contacts(c.strand_a, s_a, c.strand_b, s_b, point_a, point_b, normal, frames, dist, c.radius)
+
+
+@dataclass
+class DetectionCache:
+    """The last detection pass: its samples (V, 3) in the head's frame, the margins it used and its
+    candidates (in the head's frame)."""
+
+    samples: np.ndarray
+    margins: tuple[float, float]
+    candidates: object
+
+
+# --------------------------------------------------------------------------- the tracker
+class ContactTracker:
+    """Which contacts enter each step's problem, and their warm start.
+
+    params: SimulationParams; radius r_c; head_surface (contact.HeadSurface or None); motion
+    (simulate_motion.HeadMotion); lengths (S, N) and mask of the elements; warm_start = (contacts,
+    impulses (m, 3) in N s) for the first solve or None.
+    """
+
+    def __init__(self, params, radius: float, head_surface, motion, lengths: np.ndarray, mask: np.ndarray,
+                 warm_start=None):
+        self.params = params
+        self.radius = float(radius)
+        self.head_surface = head_surface
+        self.motion = motion
+        self.lengths = lengths
+        self.mask = mask
+        skin = params.detection_skin
+        self.skin = self.radius if skin is None else float(skin)
+        self.warm_start = warm_start
+        self.previous = None  # (contacts, impulses) of the last step
+        self.initial = None
+        self.cache: DetectionCache | None = None
+        self.passes = 0  # detection passes run
+        self.reused = 0  # steps served by the kept candidates
+
+    # ---------------------------------------------------------------- margins
+    def margins(self, speed: float) -> tuple[float, float]:
+        """(head, strand) detection margins: 1.5 h |v|max, capped at 100 r_c and 2 r_c (or the params')."""
+        p = self.params
+        reach = 1.5 * speed * p.dt
+        head_cap = 100.0 * self.radius if p.head_margin is None else p.head_margin
+        strand_cap = 2.0 * self.radius if p.strand_margin is None else p.strand_margin
+        return float(min(head_cap, reach)), float(min(strand_cap, reach))
+
+    # ---------------------------------------------------------------- detection
+    def _samples(self, helix, kin, t):
+        pts, offsets, _, arc = sh.sample(helix, self.params.samples_per_element, kin)
+        transform = self.motion.transform(t)
+        if transform is not None:
+            R, T = transform
+            pts = (pts - T) @ R  # R^T (x - T): the head's rest frame
+        return pts, offsets, arc, transform
+
+    def _pass(self, pts, offsets, arc, margins):
+        """Detection on the samples (head's frame) with the thresholds grown by the skin."""
+        from .contact import Contacts, detect_head_contacts, detect_strand_contacts
+
+        r_s = self.radius + margins[1]
+        r_h = self.radius + margins[0]
+        parts = []
+        if self.params.contacts == "all":
+            parts.append(detect_strand_contacts(pts, offsets, arc, r_s + 0.5 * self.skin, min_self_arc=np.pi * r_s,
+                                                merge_arc=4.0 * r_s))
+        if self.head_surface is not None:
+            parts.append(detect_head_contacts(pts, offsets, arc, self.head_surface, r_h + self.skin,
+                                              min_root_arc=np.pi * r_h, merge_arc=4.0 * r_h))
+        for part in parts:
+            part.radius = r_s
+        out = Contacts.concatenate(parts)
+        self.passes += 1
+        return out
+
+    def _can_reuse(self, pts, margins) -> bool:
+        c = self.cache
+        if c is None or self.skin <= 0.0 or c.samples.shape != pts.shape:
+            return False
+        moved = float(np.sqrt(np.max(np.sum((pts - c.samples) ** 2, axis=1), initial=0.0)))
+        grow_h = max(0.0, margins[0] - c.margins[0])
+        grow_s = max(0.0, margins[1] - c.margins[1])
+        return moved + grow_s <= 0.5 * self.skin and moved + grow_h <= self.skin
+
+    def detect(self, helix: sh.SuperHelix, kin, t: float, margins: tuple[float, float]):
+        """Contacts within the thresholds at ``margins`` on the current geometry (world frame)."""
+        from .contact import Contacts
+
+        pts, offsets, arc, transform = self._samples(helix, kin, t)
+        if self._can_reuse(pts, margins):
+            found = revisit(pts, offsets, arc, self.cache.candidates, self.head_surface)
+            self.reused += 1
+        else:
+            found = self._pass(pts, offsets, arc, margins)
+            self.cache = DetectionCache(pts, margins, found)
+        if transform is not None and len(found.strand_a):
+            R, T = transform
+            found = Contacts(found.strand_a, found.s_a, found.strand_b, found.s_b, found.point_a @ R.T + T,
+                             found.point_b @ R.T + T, found.normal @ R.T, found.frame @ R.T, found.distance,
+                             found.radius)
+        keep = found.distance <= contact_thresholds(found, self.radius, margins)
+        out = found.subset(keep) if not np.all(keep) else found
+        out.radius = self.radius + margins[1]
+        return out
+
+    def detect_initial(self, helix: sh.SuperHelix, kin=None):
+        """The contacts at the start (no margins): the depths they may keep without push."""
+        self.initial = self.detect(helix, kin, 0.0, (0.0, 0.0))
+        return self.initial
+
+    # ---------------------------------------------------------------- persistence
+    def persistent(self, helix: sh.SuperHelix, kin, t: float, detected, margins: tuple[float, float]):
+        """Previous-step contacts that carried load (r_N > 0), not re-detected nearby, re-evaluated at
+        their arc lengths on the current geometry and kept while within reach: a strand draped over
+        a smooth surface keeps several supports instead of one that hops between samples."""
+        from .contact import Contacts
+
+        if self.previous is None or self.previous[1] is None or len(self.previous[1]) == 0:
+            return detected
+        prev, imp = self.previous
+        cand = prev.subset(imp[:, 0] > 0)
+        if len(cand) and len(detected):
+            spacing = float(np.mean(self.lengths[self.mask])) / self.params.samples_per_element
+            cand = cand.subset(match_contacts(detected, cand, max(4.0 * self.radius, spacing)) < 0)
+        if len(cand) == 0:
+            return detected
+        x_a, point_b, normal, frames, dist = reevaluate(helix, kin, cand, self.head_surface, self.motion.transform(t))
+        threshold = np.where(cand.strand_b < 0, self.radius + margins[0], 2.0 * self.radius + 2.0 * margins[1])
+        keep = dist <= threshold
+        if not np.any(keep):
+            return detected
+        kept = Contacts(cand.strand_a[keep], cand.s_a[keep], cand.strand_b[keep], cand.s_b[keep], x_a[keep],
+                        point_b[keep], normal[keep], frames[keep], dist[keep], detected.radius)
+        return Contacts.concatenate([detected, kept])
+
+    def contacts(self, helix: sh.SuperHelix, kin, t: float, margins: tuple[float, float]):
+        """The step's contacts: detected (or kept) plus the persistent ones."""
+        return self.persistent(helix, kin, t, self.detect(helix, kin, t, margins), margins)
+
+    # ---------------------------------------------------------------- targets and warm start
+    def allowed_depth(self, contacts) -> np.ndarray:
+        """Depth tolerated without push: the allowance, or the contact's own depth at the start."""
+        r_c = self.radius
+        p = self.params
+        base = 0.5 * r_c if p.penetration_allowance is None else p.penetration_allowance
+        allowed = np.full(len(contacts.strand_a), base)
+        init = self.initial
+        if init is not None and len(init.strand_a):
+            sample = float(np.max(self.lengths)) / p.samples_per_element
+            idx = match_contacts(init, contacts, 4.0 * r_c + 2.0 * sample)
+            depth0 = -contact_gaps(init, r_c)
+            has = idx >= 0
+            allowed[has] = np.maximum(allowed[has], depth0[idx[has]])
+        return allowed
+
+    def targets(self, contacts) -> np.ndarray:
+        """ubar (m,) of normal_velocity_targets for these contacts."""
+        p = self.params
+        return normal_velocity_targets(contact_gaps(contacts, self.radius), self.allowed_depth(contacts), p.dt,
+                                       p.push_rate, p.max_push_speed)
+
+    def initial_impulses(self, contacts) -> np.ndarray:
+        """(m, 3) impulses (N s) to start the solve from: the previous step's on the matching contacts
+        (same strands, arc lengths within 2 r_c), else the warm start's."""
+        r0 = np.zeros((len(contacts.strand_a), 3))
+        known = self.previous if self.previous is not None and self.previous[1] is not None else self.warm_start
+        if known is not None and len(known[1]):
+            idx = match_contacts(known[0], contacts, 2.0 * self.radius + 1e-12)
+            has = idx >= 0
+            r0[has] = known[1][idx[has]]
+        return r0
+
+    def remember(self, contacts, impulses) -> None:
+        """The step's contacts and impulses, for persistence and the next warm start."""
+        self.previous = (contacts, impulses)

@@ -1,0 +1,93 @@
+"""Progress of a simulation run: a bar whose time estimate comes from measured steps only.
+
+The first step of a process may load or compile the numba kernels (seconds on a first run, before
+the cache exists): it is shown as such and left out of the estimate, which is the mean of the later
+steps times the steps left (over every run still to come, e.g. groom check's two).  The estimate is
+printed once, after ``announce_after`` measured steps.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+
+
+class StepProgress:
+    """Progress over ``runs`` = [(name, steps), ...] simulated one after the other.
+
+    ``enabled`` False: silent.  ``step(seconds)`` after every step, ``next_run()`` between runs.
+    """
+
+    def __init__(self, runs, enabled: bool = True, announce_after: int = 3, stream=None):
+        self.runs = list(runs)
+        self.enabled = enabled
+        self.announce_after = announce_after
+        self.stream = stream if stream is not None else sys.stderr
+        self.index = 0
+        self.done_in_run = 0
+        self.measured: list[float] = []  # step times after the first step of each run
+        self.announced = False
+        self.bar = None
+        self.t0 = time.perf_counter()
+        self._open()
+
+    @property
+    def total_steps(self) -> int:
+        return sum(n for _, n in self.runs)
+
+    def steps_left(self) -> int:
+        return sum(n for _, n in self.runs[self.index:]) - self.done_in_run
+
+    def estimate_s(self) -> float | None:
+        """Seconds left: mean measured step time x steps left (None before a step was measured)."""
+        if not self.measured:
+            return None
+        recent = self.measured[-50:]
+        return sum(recent) / len(recent) * self.steps_left()
+
+    def _open(self) -> None:
+        if not self.enabled or self.index >= len(self.runs):
+            return
+        from tqdm.auto import tqdm
+
+        name, steps = self.runs[self.index]
+        self.bar = tqdm(total=steps, desc=name, unit="step", leave=False, file=self.stream,
+                        bar_format="{desc}: {percentage:3.0f}%|{bar}| {n_fmt}/{total_fmt} [{elapsed}{postfix}]")
+        self.bar.set_postfix_str("first step: loading kernels (compiled on a first run only)", refresh=True)
+
+    def step(self, seconds: float) -> None:
+        if self.done_in_run > 0:
+            self.measured.append(seconds)
+        self.done_in_run += 1
+        if self.bar is None:
+            return
+        left = self.estimate_s()
+        if left is None:
+            self.bar.set_postfix_str(f"first step {seconds:.1f} s (kernels loaded)", refresh=False)
+        else:
+            self.bar.set_postfix_str(f"{1e3 * sum(self.measured[-50:]) / len(self.measured[-50:]):.0f} ms/step, "
+                                     f"~{_duration(left)} left", refresh=False)
+        self.bar.update(1)
+        if not self.announced and len(self.measured) >= self.announce_after:
+            self.announced = True
+            self.bar.write(f"estimated run time: ~{_duration(left)} more for {self.steps_left()} steps "
+                           f"({1e3 * left / max(self.steps_left(), 1):.0f} ms/step)", file=self.stream)
+
+    def next_run(self) -> None:
+        self.close()
+        self.index += 1
+        self.done_in_run = 0
+        self._open()
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+            self.bar = None
+
+
+def _duration(seconds: float) -> str:
+    if seconds < 90:
+        return f"{seconds:.0f} s"
+    if seconds < 5400:
+        return f"{seconds / 60:.0f} min"
+    return f"{seconds / 3600:.1f} h"

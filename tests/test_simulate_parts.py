@@ -1,0 +1,264 @@
+"""The simulator's parts: per-strand linear algebra against dense references, detection kept while
+nothing moved against fresh detection, SimulationParams as the only carrier of options, the progress
+estimate, and groom check's per-strand materials and strand subsets."""
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+import trimesh
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from groomtool.check import check_groom, choose_strands, load_inverted
+from groomtool.invert import InversionParams, invert_groom
+from groomtool.material import Material
+from groomtool.rods import superhelix as sh
+from groomtool.simulate import SimulationParams, Simulator, simulate
+from groomtool.simulate_linalg import _cho_inverse_kernel, cho_inverse, factor_step_matrix
+from groomtool.simulate_progress import StepProgress
+
+GRAVITY = np.array([0.0, -9.81, 0.0])
+
+
+# --------------------------------------------------------------------------- linear algebra
+def dense_factor_reference(A, B, n_elements):
+    """The step matrix as first written: batched Cholesky test of A/2 + B, generalized eigh on failures."""
+    import scipy.linalg
+
+    M = A + B
+    modified = 0
+    for s in range(len(A)):
+        n = 3 * int(n_elements[s])
+        a, b = A[s, :n, :n], B[s, :n, :n]
+        try:
+            np.linalg.cholesky(0.5 * a + b)
+        except np.linalg.LinAlgError:
+            lam, V = scipy.linalg.eigh(b, a)
+            d = np.where(lam >= 0.0, 1.0 + lam, 1.0 + 0.5 * np.abs(lam))
+            AV = a @ V
+            M[s, :n, :n] = (AV * d) @ AV.T
+            modified += 1
+    return M, modified
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), unstable=st.floats(0.0, 3.0))
+def test_factor_step_matrix_matches_the_dense_reference(seed, unstable):
+    rng = np.random.default_rng(seed)
+    N = 6
+    n_elements = rng.integers(1, N + 1, size=4)
+    S, n = len(n_elements), 3 * N
+    A = np.zeros((S, n, n))
+    B = np.zeros((S, n, n))
+    for s, k in enumerate(n_elements):
+        m = 3 * int(k)
+        X = rng.normal(size=(m, m))
+        A[s, :m, :m] = X @ X.T + m * np.eye(m)
+        Y = rng.normal(size=(m, m))
+        B[s, :m, :m] = -unstable * m * (Y + Y.T) / 2.0
+        A[s, m:, m:] = np.eye(n - m)
+    chol, modified = factor_step_matrix(A, B, n_elements)
+    ref, ref_modified = dense_factor_reference(A, B, n_elements)
+    assert modified == ref_modified
+    got = chol @ np.swapaxes(chol, -1, -2)
+    assert np.abs(got - ref).max() <= 1e-10 * np.abs(ref).max()
+    assert np.allclose(np.triu(chol, 1), 0.0)
+
+
+def test_cho_inverse_matches_the_triangular_solves():
+    rng = np.random.default_rng(3)
+    X = rng.normal(size=(30, 30))
+    L = np.linalg.cholesky(X @ X.T + 30 * np.eye(30))
+    for n in (30, 21, 3):
+        ref = _cho_inverse_kernel(L, n)
+        assert np.abs(cho_inverse(L, n) - ref).max() <= 1e-12 * np.abs(ref).max()
+        assert np.allclose(cho_inverse(L, n) @ (L[:n, :n] @ L[:n, :n].T), np.eye(n), atol=1e-10)
+
+
+# --------------------------------------------------------------------------- detection kept
+def frame(tangent, normal):
+    t = np.asarray(tangent, float) / np.linalg.norm(tangent)
+    n = np.asarray(normal, float) - np.dot(normal, t) * t
+    n /= np.linalg.norm(n)
+    return np.stack([t, n, np.cross(t, n)], axis=1)
+
+
+def crossing_strands():
+    """Two straight strands crossing just above each other over a sphere: strand/strand and head contacts."""
+    sphere = trimesh.creation.icosphere(subdivisions=4, radius=0.05)
+    n = 6
+    roots = [[-0.03, 0.05 + 3e-5, 0.0], [0.0, 0.05 + 3e-5 + 9e-5, -0.03]]
+    frames = [frame([1, 0, 0], [0, 1, 0]), frame([0, 0, 1], [0, 1, 0])]
+    helix = sh.SuperHelix(np.array(roots), np.array(frames), np.full((2, n), 0.01), np.zeros((2, n, 3)))
+    return helix, sphere
+
+
+def keys(contacts):
+    return {(int(a), int(b)): None for a, b in zip(contacts.strand_a, contacts.strand_b)}
+
+
+def test_kept_contacts_match_a_fresh_detection_and_save_passes():
+    helix, sphere = crossing_strands()
+    params = SimulationParams(dt=1 / 240, contacts="all", contact_radius=50e-6)
+    kept = Simulator(helix, helix.curvatures, Material(), GRAVITY, head=sphere, params=params)
+    fresh = Simulator(helix, helix.curvatures, Material(), GRAVITY, head=sphere,
+                      params=SimulationParams(dt=1 / 240, contacts="all", contact_radius=50e-6, detection_skin=0.0))
+    for _ in range(40):
+        a, b = kept.step(), fresh.step()
+        # same physics: the same contacts (strand pairs, distances) and the same motion
+        assert len(a.contacts) == len(b.contacts)
+        assert keys(a.contacts) == keys(b.contacts)
+        order_a = np.lexsort((a.contacts.s_a, a.contacts.strand_b, a.contacts.strand_a))
+        order_b = np.lexsort((b.contacts.s_a, b.contacts.strand_b, b.contacts.strand_a))
+        assert np.abs(a.contacts.distance[order_a] - b.contacts.distance[order_b]).max() < 1e-6
+    assert np.abs(kept.tips() - fresh.tips()).max() < 1e-5
+    assert fresh.tracker.reused == 0
+    assert kept.tracker.reused > 0 and kept.tracker.passes < fresh.tracker.passes
+
+
+def test_kept_contacts_at_rest_are_the_detections_own():
+    helix, sphere = crossing_strands()
+    sim = Simulator(helix, helix.curvatures, Material(), GRAVITY, head=sphere,
+                    params=SimulationParams(contacts="all", contact_radius=50e-6))
+    first = sim.tracker.initial
+    kin = sh.kinematics(sim.helix())
+    again = sim.tracker.detect(sim.helix(), kin, 0.0, (0.0, 0.0))
+    assert sim.tracker.reused == 1 and sim.tracker.passes == 1
+    assert len(again) == len(first) and len(first) >= 2
+    for name in ("point_a", "point_b", "normal", "frame", "distance", "s_a"):
+        assert np.allclose(getattr(again, name), getattr(first, name), rtol=0, atol=1e-12)
+
+
+# --------------------------------------------------------------------------- options
+def test_simulate_never_modifies_the_params_and_takes_dt_from_them():
+    n = 4
+    helix = sh.SuperHelix([0.0, 0.0, 0.0], np.eye(3), np.full((1, n), 0.01), np.zeros((1, n, 3)))
+    params = SimulationParams(dt=0.01, contacts="none")
+    result = simulate(helix, helix.curvatures, Material(), GRAVITY, seconds=0.05, params=params)
+    assert result.timings["steps"] == 5 and result.stats["dt"] == 0.01
+    result = simulate(helix, helix.curvatures, Material(), GRAVITY, seconds=0.05, params=params, dt=0.025)
+    assert result.timings["steps"] == 2
+    assert params.dt == 0.01 and params.contacts == "none"
+    with pytest.raises(ValueError, match="detection_skin"):
+        SimulationParams(detection_skin=-1.0)
+
+
+def test_progress_estimate_leaves_out_the_first_step():
+    bar = StepProgress([("inverted", 10), ("naive", 10)], enabled=False)
+    assert bar.estimate_s() is None
+    bar.step(30.0)  # compiling
+    assert bar.estimate_s() is None
+    for _ in range(3):
+        bar.step(0.1)
+    assert bar.estimate_s() == pytest.approx(0.1 * 16)
+    bar.next_run()
+    bar.step(0.2)  # the first step of the second run is left out as well
+    assert bar.estimate_s() == pytest.approx(0.1 * 9)
+
+
+# --------------------------------------------------------------------------- groom check
+def hanging_groom(n=3, length=0.12):
+    from groomtool.groom import Groom
+
+    strands = []
+    for k in range(n):
+        s = np.linspace(0.0, length, 40)
+        radius = 0.05 + 0.003 * k
+        angle = s / radius
+        strands.append(np.stack([radius * np.sin(angle), radius * (np.cos(angle) - 1.0), 0.01 * k + 0 * s], axis=1))
+    return Groom.from_strands(strands, up="y", source="hanging")
+
+
+@pytest.fixture(scope="module")
+def inverted_dir(tmp_path_factory):
+    out = tmp_path_factory.mktemp("inverted")
+    invert_groom(hanging_groom(), None, InversionParams(contacts="none")).save(out)
+    return out
+
+
+PER_STRAND = ("strand_young_modulus", "strand_shear_modulus", "stiffness_factor")
+
+
+def with_arrays(src, dst, drop=PER_STRAND, **extra):
+    """A copy of an inversion directory whose rest.npz lacks ``drop`` and carries ``extra`` arrays."""
+    dst.mkdir(parents=True, exist_ok=True)
+    for f in src.iterdir():
+        if f.is_file() and f.name != "rest.npz":
+            shutil.copy(f, dst / f.name)
+    arrays = {k: v for k, v in np.load(src / "rest.npz", allow_pickle=False).items() if k not in drop}
+    arrays.update(extra)
+    np.savez(dst / "rest.npz", **arrays)
+    return dst
+
+
+def test_per_strand_materials_are_read_and_used_by_the_inverted_run_only(inverted_dir, tmp_path):
+    plain_dir = with_arrays(inverted_dir, tmp_path / "plain")  # a rest.npz written before per-strand materials
+    plain = load_inverted(plain_dir)
+    assert plain.strand_stiffness is None and plain.stiffness() is None
+    E = plain.material.young_modulus
+    young = np.array([E, 2.0 * E, E])
+    shear = np.array([E / 3.0, 2.0 * E / 3.0, E / 2.0])
+    folder = with_arrays(inverted_dir, tmp_path / "stiffened", strand_young_modulus=young, strand_shear_modulus=shear,
+                         stiffness_factor=np.array([1.0, 2.0, 1.0]))
+    inv = load_inverted(folder)
+    I = plain.material.second_moment
+    expected = np.stack([shear * 2 * I, young * I, young * I], axis=1)
+    assert np.allclose(inv.strand_stiffness, expected, rtol=1e-14)
+    K = inv.stiffness()
+    assert np.allclose(K[1], inv.helix.lengths[1][:, None] * expected[1], rtol=1e-14)
+    assert np.allclose(K[0], sh.stiffness(inv.helix, plain.material.stiffness_diag)[0], rtol=1e-14)
+
+    base = check_groom(plain_dir, seconds=0.05, dt=1 / 120)
+    report = check_groom(folder, seconds=0.05, dt=1 / 120)
+    assert report["per_strand_materials"] and not base["per_strand_materials"]
+    unit = check_groom(with_arrays(inverted_dir, tmp_path / "ones", stiffness_factor=np.ones(3)), seconds=0.05,
+                       dt=1 / 120)
+    assert not unit["per_strand_materials"]  # factors of one: the scalar material
+    assert unit["inverted"]["max_tip_drift_m"] == pytest.approx(base["inverted"]["max_tip_drift_m"], abs=1e-15)
+    # the inversion's rest curvatures balance gravity at E: at 2E strand 1 is out of equilibrium and
+    # moves; the naive run (scalar material) is unchanged
+    assert base["inverted"]["max_tip_drift_m"] < 1e-9
+    assert report["inverted"]["max_tip_drift_m"] > 1e-6
+    assert report["naive"]["max_tip_drift_m"] == pytest.approx(base["naive"]["max_tip_drift_m"], rel=1e-12)
+
+
+def test_only_a_stiffness_factor_scales_the_scalar_material(inverted_dir, tmp_path):
+    folder = with_arrays(inverted_dir, tmp_path / "factor", stiffness_factor=np.array([1.0, 1.5, 3.0]))
+    inv = load_inverted(folder)
+    d = inv.material.stiffness_diag
+    assert np.allclose(inv.strand_stiffness, np.array([1.0, 1.5, 3.0])[:, None] * d[None, :], rtol=1e-14)
+    bad = with_arrays(inverted_dir, tmp_path / "bad", strand_young_modulus=np.array([1.0, 2.0]))
+    with pytest.raises(ValueError, match="strand_young_modulus"):
+        load_inverted(bad)
+
+
+def test_strand_subset_takes_the_contact_partners(inverted_dir):
+    inv = load_inverted(inverted_dir)
+    from types import SimpleNamespace
+
+    inv.contact_forces = (SimpleNamespace(strand_a=np.array([0, 1, 2]), s_a=np.zeros(3), strand_b=np.array([1, -1, 2]),
+                                          s_b=np.array([0.0, np.nan, 0.05])), np.ones((3, 3)))
+    for seed in range(6):
+        chosen, simulated = choose_strands(inv, 1, seed=seed)
+        assert len(chosen) == 1
+        expected = {0, 1} if chosen[0] in (0, 1) else {2}
+        assert set(simulated.tolist()) == expected
+    sub = inv.subset(np.array([0, 1]))
+    assert sub.helix.n_strands == 2 and len(sub.contact_forces[1]) == 2
+    assert sub.contact_forces[0].strand_b.tolist() == [1, -1]
+
+
+def test_check_command_with_a_subset(inverted_dir, capsys):
+    from test_check import parser  # noqa: F401 - same CLI wiring
+
+    from groomtool.cli import simulate_cmd
+
+    args = parser().parse_args(["check", str(inverted_dir), "--strands", "2", "--seed", "1", "--seconds", "0.02",
+                                "--dt", "0.01"])
+    assert simulate_cmd.cmd_check(args) == 0
+    out = capsys.readouterr().out
+    assert "2 of 3 strands" in out and "contact solves failed" in out
+    report = json.loads((inverted_dir / "check.json").read_text())
+    assert report["subset"]["checked"] == 2 and len(report["subset"]["checked_strands"]) == 2
