@@ -120,6 +120,19 @@ def test_foreign_subdirectory_is_refused_before_computing(result, example, tmp_p
     assert run_of_with(out, {"sim"}) == 1 and (out / "sim" / "frame_0000.obj").exists()
 
 
+def test_current_directory_is_refused(result, tmp_path, monkeypatch):
+    from groomtool.groom import GroomError
+
+    (tmp_path / "notes.txt").write_text("mine")
+    monkeypatch.chdir(tmp_path)
+    for outdir in (".", str(tmp_path)):
+        with pytest.raises(GroomError, match="current directory"):
+            outset.check_target(outdir)
+        with pytest.raises(GroomError, match="current directory"):
+            write_result(stamped(result, 1), outdir)
+    assert {p.name for p in tmp_path.iterdir()} == {"notes.txt"}
+
+
 def run_of_with(out, extra) -> int:
     with np.load(out / "rest.npz") as z:
         run = int(z["run"])

@@ -112,9 +112,14 @@ def _link_or_copy(src, dst):
 
 def _check_foreign(target: Path, outdir) -> None:
     """A directory inside the target is refused: the set is replaced as a whole, and a directory
-    (maybe a mount point, maybe large) is not something to copy or delete on the user's behalf."""
+    (maybe a mount point, maybe large) is not something to copy or delete on the user's behalf.
+    So is the current directory or one holding it (the shell would be left in a removed one)."""
     if not target.is_dir():
         return
+    cwd = Path.cwd().resolve()
+    if target.resolve() == cwd or target.resolve() in cwd.parents:
+        raise GroomError(f"{outdir}: is (or holds) the current directory, which the output set would replace: "
+                         "give a directory of its own (e.g. -o out)")
     for p in target.iterdir():
         if p.name not in OWNED and p.is_dir() and not p.is_symlink():
             raise GroomError(
