@@ -342,3 +342,22 @@ def test_polyline_distances_brute_force():
     ref = np.sqrt(((pts[:, None] - dense[None]) ** 2).sum(-1)).min(axis=1)
     assert np.allclose(cl.polyline_distances(pts, curve), ref, atol=2e-3)
     assert (cl.polyline_distances(pts, curve) <= ref + 1e-12).all()
+
+
+def test_isolated_inversion_solves_the_equilibrium():
+    """q0 = q - K^-1 F: K (q - q0) = F (banded product) and the Thomas solve equals a dense solve, on padded strands."""
+    c = random_clothoid(12, n_strands=4, n_elements=6, scale=40.0, pad=True)
+    D = np.array([1.5e-10, 2e-10, 2.5e-10])
+    q0 = cl.rest_curvatures(c, RHO_S, GRAVITY, D)
+    F = cl.gravity_force(c, RHO_S, GRAVITY)
+    assert np.allclose(cl.stiffness_apply(c, D, c.curvatures - q0), F, rtol=0, atol=1e-12 * np.abs(F).max())
+    assert not q0[~c.node_mask].any()
+    K = cl.stiffness_matrix(c, D)
+    for k in range(c.n_strands):
+        m = np.repeat(c.node_mask[k], 3)
+        ref = np.linalg.solve(K[k][np.ix_(m, m)], F[k].ravel()[m])
+        assert np.allclose((c.curvatures[k] - q0[k]).ravel()[m], ref, rtol=1e-12, atol=1e-12 * np.abs(ref).max())
+    # the equilibrium is the stationary point of E + V: its gradient K (q - q0) - F vanishes
+    grad = _central(lambda q: cl.elastic_energy(c.with_curvatures(q), q0, D)
+                    + cl.gravity_potential(c.with_curvatures(q), RHO_S, GRAVITY), c.curvatures, 1e-5)
+    assert np.abs(grad).max() <= 1e-6 * np.abs(F).max()

@@ -665,6 +665,42 @@ def stiffness_apply(clothoid: SuperClothoid, stiffness_diag, d: np.ndarray) -> n
     return out
 
 
+def stiffness_solve(clothoid: SuperClothoid, stiffness_diag, rhs: np.ndarray) -> np.ndarray:
+    """K^{-1} rhs for rhs (S, N + 1, 3): K = D (x) M_FE decouples by component, so 3S tridiagonal systems
+    M_FE x_c = rhs_c / D_c, solved by the Thomas algorithm (M_FE is SPD and diagonally dominant: no pivoting).
+    Padding nodes (no element) get 0."""
+    D = np.asarray(stiffness_diag, dtype=np.float64)
+    l = clothoid.lengths
+    S, N = l.shape
+    lpad = np.concatenate([np.zeros((S, 1)), l, np.zeros((S, 1))], axis=1)
+    diag = (lpad[:, :-1] + lpad[:, 1:]) / 3.0  # (S, N + 1)
+    off = l / 6.0  # (S, N)
+    real = diag > 0
+    diag = np.where(real, diag, 1.0)
+    b = np.where(real[..., None], np.asarray(rhs) / D, 0.0)
+    c_prime = np.zeros((S, N))
+    d_prime = np.empty_like(b)
+    denom = diag[:, 0]
+    d_prime[:, 0] = b[:, 0] / denom[:, None]
+    for i in range(1, N + 1):
+        c_prime[:, i - 1] = off[:, i - 1] / denom
+        denom = diag[:, i] - off[:, i - 1] * c_prime[:, i - 1]
+        d_prime[:, i] = (b[:, i] - off[:, i - 1, None] * d_prime[:, i - 1]) / denom[:, None]
+    x = np.empty_like(b)
+    x[:, N] = d_prime[:, N]
+    for i in range(N - 1, -1, -1):
+        x[:, i] = d_prime[:, i] - c_prime[:, i, None] * x[:, i + 1]
+    return x
+
+
+def rest_curvatures(clothoid: SuperClothoid, linear_density: float, gravity, stiffness_diag,
+                    kin: Kinematics | None = None) -> np.ndarray:
+    """The isolated inversion q0 = q - K^{-1} F(q) (MATH.md section 6; K block tridiagonal, not diagonal as for the
+    helix), (S, N + 1, 3): the rest nodal curvatures for which the current shape is an equilibrium under gravity."""
+    F = gravity_force(clothoid, linear_density, gravity, kin)
+    return clothoid.curvatures - stiffness_solve(clothoid, stiffness_diag, F)
+
+
 def elastic_energy(clothoid: SuperClothoid, rest_curvatures: np.ndarray, stiffness_diag) -> np.ndarray:
     """1/2 int (Omega - Omega0)^T D (Omega - Omega0) ds = 1/2 sum_j l_j/3 (d_j^2 + d_j d_{j+1} + d_{j+1}^2) . D."""
     d = clothoid.curvatures - rest_curvatures
