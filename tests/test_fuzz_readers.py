@@ -232,3 +232,28 @@ def test_fuzzed_file_is_a_groom_or_a_clear_error(tmp_path, name, ops, repair, st
     path = tmp_path / f"fuzz{suffix}"
     path.write_bytes(mutate(data, ops))
     assert outcome(name, path, repair=repair, strand_length=strand_length) in ("ok", "error")
+
+
+def regressions() -> dict:
+    """The reader failures this fuzzing found, kept as explicit files: (suffix, bytes, must_fail)."""
+    cases = {
+        "usda-not-utf8": (".usda", b"\xff\xff\xff\xff" + USDA[4:], True),
+        "usda-unregistered-type": (".usda", USDA.replace(b"point3f[]", b"point3q[]"), True),
+        "head-2d-vertices": (".obj", HEAD_OBJ.replace(b"v 0 0 0\n", b"v 0\t0\n"), True),
+    }
+    ours = seeds().get("usda-ours")
+    if ours is not None:  # a primvar one value short (bench/bench_fuzz.py, seed 7, file 492): IndexError once
+        cases["usda-short-primvar"] = (".usda", mutate(ours[1], [("delete", 0.45568931460464224, 57355)]), False)
+    return cases
+
+
+@pytest.mark.parametrize("case", ["usda-not-utf8", "usda-unregistered-type", "head-2d-vertices",
+                                  "usda-short-primvar"])
+def test_fuzz_findings_are_clear_errors(tmp_path, case):
+    if case.startswith("usda"):
+        pytest.importorskip("pxr")
+    suffix, data, must_fail = regressions()[case]
+    path = tmp_path / f"{case}{suffix}"
+    path.write_bytes(data)
+    result = outcome(case, path)
+    assert result == "error" or not must_fail
