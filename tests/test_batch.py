@@ -83,6 +83,7 @@ def test_cli_corrupt_input_is_reported_and_the_batch_completes(data, tmp_path, c
         assert r["solve_status"] == report["solve"]["status"]
         assert float(r["residual"]) == pytest.approx(report["solve"]["residual"], rel=1e-5, abs=1e-300)
         assert int(r["unstable_strands"]) == report["stability"]["unstable_strands"]
+        assert r["q0_error_bound"] == batch._cell(report["solve"].get("q0_error_bound"))
         assert float(r["wall_s"]) >= float(r["invert_s"]) > 0
         with np.load(out / name / "rest.npz") as z:
             q0 = np.linalg.norm(z["rest_curvatures"], axis=1).max()

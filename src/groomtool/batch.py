@@ -55,7 +55,7 @@ THREAD_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THRE
 
 # the summary's columns, in order (CSV header; the JSON rows carry these plus ``timings_s``)
 COLUMNS = ("name", "input", "status", "strands", "elements", "contacts", "contacts_head", "contacts_strand",
-           "solver", "solve_status", "solve_iterations", "residual", "equilibrium_residual",
+           "solver", "solve_status", "solve_iterations", "residual", "q0_error_bound", "equilibrium_residual",
            "unstable_strands", "unstable_with_contacts", "q0_max", "q0_change_max", "fit_max_error_m",
            "load_s", "invert_s", "write_s", "wall_s", "worker", "worker_peak_rss_mib", "output", "error")
 
@@ -127,7 +127,7 @@ def _row_from_report(row: dict, report: dict) -> dict:
     s = report.get("solve")
     if s:
         row.update(solver=s.get("solver"), solve_status=s.get("status"), solve_iterations=s.get("iterations"),
-                   residual=s.get("residual"))
+                   residual=s.get("residual"), q0_error_bound=s.get("q0_error_bound"))
     if "equilibrium" in report:
         row["equilibrium_residual"] = report["equilibrium"].get("max_relative_residual")
     st = report.get("stability")
@@ -370,7 +370,7 @@ def run_batch(inputs, outdir, head=None, params=None, *, units="m", scale: float
     from tqdm.auto import tqdm
 
     from .io.common import unit_scale
-    from .io.outset import check_target
+    from .io.outset import check_target, resolve_target
 
     t0 = time.perf_counter()
     paths = _check_inputs(inputs)
@@ -386,10 +386,15 @@ def run_batch(inputs, outdir, head=None, params=None, *, units="m", scale: float
     if unknown:
         raise GroomError(f"unknown output format(s) {', '.join(unknown)}")
 
-    outdir = check_target(outdir)  # before any computation: a directory we can write
-    for p in paths:
+    outdir = resolve_target(outdir)  # the batch's root, holding one output set per groom
+    if outdir.exists() and not outdir.is_dir():
+        raise GroomError(f"{outdir}: exists and is not a directory: give a directory for the outputs")
+    try:
+        outdir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise GroomError(f"{outdir}: cannot create the output directory: {exc.strerror or exc}") from None
+    for p in paths:  # before any computation: every groom's output set can be written there
         check_target(outdir / p.stem, inputs=(p, head))
-    outdir.mkdir(parents=True, exist_ok=True)
     if not (np.isfinite(scale) and scale > 0):
         raise GroomError(f"scale must be a positive number, got {scale:g}")
     load_options = {"units": unit_scale(units) * scale if scale != 1.0 else units, "up": up, "repair": repair,
