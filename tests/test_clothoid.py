@@ -361,3 +361,17 @@ def test_isolated_inversion_solves_the_equilibrium():
     grad = _central(lambda q: cl.elastic_energy(c.with_curvatures(q), q0, D)
                     + cl.gravity_potential(c.with_curvatures(q), RHO_S, GRAVITY), c.curvatures, 1e-5)
     assert np.abs(grad).max() <= 1e-6 * np.abs(F).max()
+
+
+def test_state_only_path_equals_the_full_propagation():
+    """evaluate's Phi, p pass (no moments) gives the full kernel's Phi, p to round-off."""
+    c = random_clothoid(21, n_strands=3, n_elements=4, scale=150.0, pad=True)
+    kin = cl.kinematics(c)
+    strand = np.repeat(np.arange(3), 9)
+    s = np.concatenate([np.linspace(0, L, 9) for L in c.strand_lengths])
+    elem, t = cl.locate(c, strand, s)
+    Phi, p, _, _ = cl._partial(c, kin, strand, elem, t)
+    pos, frames = cl.evaluate(c, strand, s, kin)
+    Re = kin.R[strand, elem]
+    assert np.allclose(frames, Re @ Phi, rtol=0, atol=1e-14)
+    assert np.allclose(pos, kin.C[strand, elem] + np.einsum("pab,pb->pa", Re, p), rtol=0, atol=1e-15)

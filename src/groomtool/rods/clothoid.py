@@ -413,6 +413,71 @@ def _propagate(a, b, T, Phi, p, P, Mphi, MX, MZ, ser, mu, tmp):
     return m, kmax, bmax
 
 
+@njit(cache=True)
+def _propagate_state(a, b, T, Phi, p, ser):
+    """Phi(T) and p(T) only (no auxiliary series, no moments): the same sub-steps, term counts and sums of
+    Psi and pi as :func:`_propagate`, about a third of its work.  ser: scratch (K_MAX + 6, 3, 3)."""
+    for r in range(3):
+        p[r] = 0.0
+        for c in range(3):
+            Phi[r, c] = 1.0 if r == c else 0.0
+    A = max(_norm_real(a[0], a[1], a[2]),
+            _norm_real(a[0] + b[0] * T, a[1] + b[1] * T, a[2] + b[2] * T))
+    B = _norm_real(b[0], b[1], b[2])
+    m = n_substeps(A, B, T)
+    if m == 0:
+        return
+    h = T / m
+    Phi0 = np.empty((3, 3), dtype=Phi.dtype)
+    pi0 = np.empty(3, dtype=p.dtype)
+    for step in range(m):
+        tau0 = step * h
+        a0 = a[0] + b[0] * tau0
+        a1 = a[1] + b[1] * tau0
+        a2 = a[2] + b[2] * tau0
+        K, bound = n_terms(_norm_real(a0, a1, a2) * h, B * h * h)
+        n = K + 5
+        ha0, ha1, ha2 = h * a0, h * a1, h * a2
+        hb0, hb1, hb2 = h * h * b[0], h * h * b[1], h * h * b[2]
+        for r in range(3):
+            for c in range(3):
+                ser[0, r, c] = 1.0 if r == c else 0.0
+        for k in range(n - 1):
+            for r in range(3):
+                for c in range(3):
+                    ser[k + 1, r, c] = 0.0
+            inv = 1.0 / (k + 1)
+            _mul_skew(ser[k], ha0, ha1, ha2, ser[k + 1], inv)
+            if k >= 1:
+                _mul_skew(ser[k - 1], hb0, hb1, hb2, ser[k + 1], inv)
+        for r in range(3):
+            pi0[r] = 0.0
+            for c in range(3):
+                ser[n, r, c] = 0.0
+        for k in range(n - 1, -1, -1):  # small terms first, as in _propagate
+            for r in range(3):
+                for c in range(3):
+                    ser[n, r, c] += ser[k, r, c]
+                pi0[r] += ser[k, r, 0] * (h / (k + 1))
+        for r in range(3):
+            for c in range(3):
+                Phi0[r, c] = Phi[r, c]
+        for r in range(3):
+            dp = 0.0 * p[r]
+            for c in range(3):
+                dp += Phi0[r, c] * pi0[c]
+                Phi[r, c] = 0.0
+            p[r] += dp
+        _mm_add(Phi0, ser[n], 1.0, Phi)
+
+
+@njit(cache=True)
+def _state_kernel(a, b, strand, elem, t, Phi, p, ser):
+    """Per point: the element's Phi(t), p(t) (:func:`_propagate_state`)."""
+    for i in range(t.shape[0]):
+        _propagate_state(a[strand[i], elem[i]], b[strand[i], elem[i]], t[i], Phi[i], p[i], ser)
+
+
 def _scratch(dtype):
     return (np.empty((3, K_MAX + 6, 3, 3), dtype=dtype), np.empty((3, 3, 3, 3), dtype=dtype),
             np.empty((4, 3, 3), dtype=dtype))
@@ -549,7 +614,11 @@ def evaluate(clothoid: SuperClothoid, strand, s, kin: Kinematics | None = None):
     kin = kin if kin is not None else kinematics(clothoid)
     strand = np.ascontiguousarray(strand, dtype=np.int64)
     elem, t = locate(clothoid, strand, s)
-    Phi, p, _, _ = _partial(clothoid, kin, strand, elem, t)
+    dtype = kin.a.dtype
+    Phi = np.empty((len(t), 3, 3), dtype=dtype)
+    p = np.empty((len(t), 3), dtype=dtype)
+    _state_kernel(kin.a, kin.b, strand, elem, np.ascontiguousarray(t), Phi, p,
+                  np.empty((K_MAX + 6, 3, 3), dtype=dtype))
     Re = kin.R[strand, elem]
     return kin.C[strand, elem] + np.einsum("pab,pb->pa", Re, p), Re @ Phi
 
