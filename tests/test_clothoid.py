@@ -375,3 +375,8 @@ def test_state_only_path_equals_the_full_propagation():
     Re = kin.R[strand, elem]
     assert np.allclose(frames, Re @ Phi, rtol=0, atol=1e-14)
     assert np.allclose(pos, kin.C[strand, elem] + np.einsum("pab,pb->pa", Re, p), rtol=0, atol=1e-15)
+    light = cl.kinematics(c, moments=False)
+    assert np.allclose(light.C, kin.C, rtol=0, atol=1e-15) and np.allclose(light.R, kin.R, rtol=0, atol=1e-14)
+    assert np.array_equal(cl.evaluate(c, strand, s, light)[0], cl.evaluate(c, strand, s)[0])
+    with pytest.raises(ValueError, match="moments"):
+        cl.gravity_force(c, RHO_S, GRAVITY, light)
