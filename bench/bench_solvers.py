@@ -2,6 +2,8 @@
 
     python bench/bench_solvers.py            # full run, writes bench/results/solvers.md and solvers.json
     python bench/bench_solvers.py --quick    # 1k and 10k only
+    python bench/bench_solvers.py --shared   # the headline: the shared generator's problems, side by side with
+                                             # so-bogus (../shared/bench/gen_hair_problem.py, issue 22)
 
 Every measurement runs in its own subprocess with NUMBA_NUM_THREADS=1 (and BLAS on one thread), so the
 times are one-core times and the peak memory is that run's own.  Reported per run:
@@ -31,6 +33,10 @@ RESULTS = HERE / "results"
 CACHE = Path(os.environ.get("GROOMTOOL_BENCH_CACHE", "/tmp/groomtool_bench_cache"))
 BOGUS_30K_S = 13.1  # so-bogus, one core, 30k contacts, 20-element strands, gamma = 0.01, residual 1e-8
 TARGET_30K_S = 2.6
+# the side-by-side problems of issue 22: ../shared/bench/gen_hair_problem.py, seed 0
+SHARED_GEN = Path(os.environ.get("GROOMTOOL_SHARED_GEN", HERE.parents[1] / "shared" / "bench" / "gen_hair_problem.py"))
+BOGUS_SHARED_30K = {"cpu_s": 18.0, "sweeps": 925, "objective": -8.817132e3, "error": 8.8e-9}  # so-bogus, one thread
+TARGET_SHARED_30K_CPU_S = 3.6  # 5x less CPU than so-bogus
 CLARABEL_LIMIT_S = 60.0
 
 
@@ -120,8 +126,59 @@ def run_child(spec: dict) -> dict:
     return out
 
 
+def shared_problem_path(m: int, pairing: str = "random", gamma: float = 0.01, seed: int = 0) -> Path:
+    """The shared generator's problem file (made once, cached under CACHE)."""
+    path = CACHE / f"shared_m{m}_{pairing}_g{gamma:g}_s{seed}.bin"
+    if not path.exists():
+        CACHE.mkdir(parents=True, exist_ok=True)
+        subprocess.run([sys.executable, str(SHARED_GEN), "--contacts", str(m), "--pairing", pairing, "--gamma",
+                        str(gamma), "--seed", str(seed), "-o", str(path)], check=True, capture_output=True)
+    return path
+
+
+def run_shared_child(spec: dict) -> dict:
+    """One solve_socqp(W, b, mu, **options) on a shared-generator problem: process CPU time and wall time
+    of the call (its set-up included), sweeps, residual, so-bogus's error figure, objective, cone
+    violation.  spec: m, pairing, gamma, seed, options, tol, max_iter, order ("reversed": contacts
+    solved in the reverse of the file's order)."""
+    sys.path.insert(0, str(HERE))
+    import numpy as np
+    import scipy.sparse as sp
+    from problems import read_bogus_problem
+
+    from groomtool.solvers import solve_socqp
+    from groomtool.solvers import residual as _res
+
+    W, b, mu = read_bogus_problem(shared_problem_path(spec["m"], spec.get("pairing", "random"), spec.get("gamma", 0.01),
+                                                      spec.get("seed", 0)))
+    opts = dict(spec.get("options", {}))
+    if spec.get("order") == "reversed":
+        opts["order"] = np.arange(b.size // 3)[::-1].copy()
+    # warm the numba caches on a small principal block so compilation never counts
+    solve_socqp(W[:600, :600], b[:600], mu[:200], max_iter=30, **{k: v for k, v in opts.items() if k != "order"})
+    c0 = time.process_time()
+    w0 = time.perf_counter()
+    res = solve_socqp(W, b, mu, tol=spec.get("tol", 1e-8), max_iter=spec.get("max_iter"), **opts)
+    cpu = time.process_time() - c0
+    wall = time.perf_counter() - w0
+    r3 = res.r.reshape(-1, 3)
+    u = (W @ res.r + b).reshape(-1, 3)
+    trace = np.asarray(sp.csr_matrix(W).diagonal()).reshape(-1, 3).sum(axis=1)
+    return {
+        "spec": spec, "m": b.size // 3, "status": res.status, "converged": res.converged, "residual": res.residual,
+        "bogus_error": _res.bogus_error(r3, u, mu, trace), "iterations": res.iterations, "objective": res.objective,
+        "cone_violation": res.cone_violation, "cpu_s": cpu, "wall_s": wall, "setup_s": res.info.get("setup_s"),
+        "solve_s": res.info.get("solve_s"), "threads": spec.get("threads", "one"),
+        "history": [(int(a), float(b_), float(c)) for a, b_, c in res.info.get("history", [])][:: max(1, len(res.info.get("history", [])) // 40)],
+        "load": os.getloadavg(),
+    }
+
+
 def child(spec: dict, timeout: float = 1800) -> dict:
     env = dict(os.environ, NUMBA_NUM_THREADS="1", OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1", MKL_NUM_THREADS="1")
+    if spec.get("threads") == "default":  # the library's own defaults: whatever the machine gives
+        env = {k: v for k, v in os.environ.items()
+               if k not in ("NUMBA_NUM_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")}
     t = time.perf_counter()
     try:
         p = subprocess.run([sys.executable, __file__, "--child", json.dumps(spec)], capture_output=True, text=True,
@@ -176,11 +233,18 @@ def main():
     ap.add_argument("--from-json", action="store_true", help="rewrite solvers.md from solvers.json")
     ap.add_argument("--target", type=int, default=0, metavar="N",
                     help="only re-measure the 30k target row N times and merge it into solvers.json")
+    ap.add_argument("--shared", action="store_true",
+                    help="only the shared generator's rows (issue 22): run them and merge them into solvers.json")
+    ap.add_argument("--repeat", type=int, default=3, help="--shared: processes per headline row (median reported)")
     ap.add_argument("--add", action="append", default=[], metavar="SPEC",
                     help="run one more spec (JSON) and append it to solvers.json")
     args = ap.parse_args()
     if args.child:
-        print(json.dumps(run_child(json.loads(args.child))))
+        spec = json.loads(args.child)
+        print(json.dumps(run_shared_child(spec) if spec.get("gen") == "shared" else run_child(spec)))
+        return
+    if args.shared:
+        run_shared(args)
         return
     if args.from_json or args.target or args.add:
         data = json.loads((RESULTS / "solvers.json").read_text())
@@ -195,7 +259,7 @@ def main():
                 print(row(tries[-1]), flush=True)
             data["target"] = {"date": time.strftime("%Y-%m-%d %H:%M"), "runs": tries, "load_at_end": os.getloadavg()}
         (RESULTS / "solvers.json").write_text(json.dumps(data, indent=1))
-        write_markdown(data["meta"], data["runs"], data.get("clarabel", []), data.get("target"))
+        write_markdown(data["meta"], data["runs"], data.get("clarabel", []), data.get("target"), data.get("shared"))
         return
 
     sizes = [1000, 10000] if args.quick else [1000, 10000, 30000, 100000]
@@ -279,14 +343,134 @@ def main():
         "cpus": os.cpu_count(),
         "load_at_end": os.getloadavg(),
     }
-    (RESULTS / "solvers.json").write_text(json.dumps({"meta": meta, "runs": runs, "clarabel": cl_runs}, indent=1))
-    write_markdown(meta, runs, cl_runs)
+    old = json.loads((RESULTS / "solvers.json").read_text()) if (RESULTS / "solvers.json").exists() else {}
+    shared = old.get("shared")  # the shared generator's rows are re-measured by --shared only
+    out = {"meta": meta, "runs": runs, "clarabel": cl_runs}
+    if shared:
+        out["shared"] = shared
+    (RESULTS / "solvers.json").write_text(json.dumps(out, indent=1))
+    write_markdown(meta, runs, cl_runs, shared=shared)
 
 
-def write_markdown(meta, runs, cl_runs, target=None):
+SHARED_EXPERIMENTS = [  # 30k, random pairing, gamma 0.01: what was tried for the sweep count (issue 22)
+    ({"options": {"anderson": 0}, "max_iter": 3000}, "plain Gauss-Seidel (no Anderson)"),
+    ({"options": {"anderson": 3}}, "Anderson memory 3"),
+    ({"options": {"anderson": 16}}, "Anderson memory 16"),
+    ({"options": {"symmetric": True}}, "symmetric sweeps (forward + backward)"),
+    ({"options": {"symmetric": 1e-5}}, "symmetric once the residual is <= 1e-5"),
+    ({"options": {"omega": 1.3}}, "over-relaxation omega 1.3"),
+    ({"order": "reversed"}, "reverse order (tip to root within a strand)"),
+    ({"tol": 1e-6}, "tolerance 1e-6"),
+    ({"tol": 1e-4}, "tolerance 1e-4"),
+]
+
+
+def _median(xs):
+    xs = sorted(xs)
+    return xs[len(xs) // 2] if len(xs) % 2 else 0.5 * (xs[len(xs) // 2 - 1] + xs[len(xs) // 2])
+
+
+def run_shared(args):
+    """The shared generator's rows (issue 22), merged into solvers.json under "shared"."""
+    base = {"gen": "shared", "gamma": 0.01, "seed": 0}
+    sizes = [int(x) for x in args.sizes.split(",")] if args.sizes else [1000, 10000, 30000, 100000]
+    rows = []
+
+    def go(spec, label, repeat=1):
+        tries = [child(spec, timeout=3600) for _ in range(repeat)]
+        ok = [t for t in tries if "cpu_s" in t]
+        if not ok:
+            print(label, tries[0], flush=True)
+            return
+        r = dict(ok[len(ok) // 2])  # the runs are deterministic: same sweeps and residual in every process
+        r["label"] = label
+        r["cpu_s_all"] = [t["cpu_s"] for t in ok]
+        r["wall_s_all"] = [t["wall_s"] for t in ok]
+        r["cpu_s"] = _median(r["cpu_s_all"])
+        r["wall_s"] = _median(r["wall_s_all"])
+        rows.append(r)
+        print(shared_row(r), flush=True)
+
+    print(SHARED_HEADER)
+    for m in sizes:
+        for pairing in ("random", "local"):
+            spec = dict(base, m=m, pairing=pairing)
+            go(spec, "defaults", repeat=args.repeat if (m == 30000 and pairing == "random") else 1)
+            if m == 30000 and pairing == "random":
+                go(dict(spec, threads="default"), "defaults, default threads", repeat=args.repeat)
+    if 30000 in sizes:
+        for extra, label in SHARED_EXPERIMENTS:
+            go(dict(base, m=30000, pairing="random", **extra), label)
+    path = RESULTS / "solvers.json"
+    data = json.loads(path.read_text()) if path.exists() else {"meta": {}, "runs": [], "clarabel": []}
+    data["shared"] = {"date": time.strftime("%Y-%m-%d %H:%M"), "runs": rows, "load_at_end": os.getloadavg(),
+                      "cpus": os.cpu_count()}
+    path.write_text(json.dumps(data, indent=1))
+    write_markdown(data["meta"], data["runs"], data.get("clarabel", []), data.get("target"), data["shared"])
+
+
+SHARED_HEADER = (
+    "| contacts | pairing | run | threads | status | CPU s (median) | wall s (median) | sweeps | residual | "
+    "so-bogus err | objective | rel. to so-bogus obj. | cone viol. |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|"
+)
+
+
+def shared_row(r):
+    s = r["spec"]
+    rel = "-"
+    if s["m"] == 30000 and s.get("pairing", "random") == "random" and s.get("gamma") == 0.01 and s.get("seed", 0) == 0:
+        rel = f"{(r['objective'] - BOGUS_SHARED_30K['objective']) / abs(BOGUS_SHARED_30K['objective']):+.1e}"
+    n = len(r.get("cpu_s_all", [1]))
+    return (
+        f"| {s['m']:,} | {s.get('pairing', 'random')} | {r['label']} | {'default' if s.get('threads') == 'default' else '1'} | "
+        f"{r['status']} | {r['cpu_s']:.2f}{f' (n={n})' if n > 1 else ''} | {r['wall_s']:.2f} | {r['iterations']} | "
+        f"{r['residual']:.1e} | {r['bogus_error']:.1e} | {r['objective']:.6e} | {rel} | {r['cone_violation']:.1e} |"
+    )
+
+
+def shared_markdown(shared):
+    rows = shared["runs"]
+    lines = [
+        "## Side by side with so-bogus: the shared generator (headline, issue 22)",
+        "",
+        f"{shared['date']}: problems of `../shared/bench/gen_hair_problem.py --contacts m --pairing p --gamma 0.01 "
+        "--seed 0` (20-element strands, m/5 strands, 20 % body contacts), solved by `solve_socqp(W, b, mu)` with its "
+        "defaults (tolerance 1e-8 on residual.py's max-norm residual, much stricter than so-bogus's error), one "
+        "process per run. Threads '1': NUMBA/OMP/OPENBLAS/MKL_NUM_THREADS=1; 'default': none set. CPU s = "
+        "time.process_time() of the call (set-up included), the figure to compare on this machine: "
+        f"{shared.get('cpus', '?')} cores shared with several other agents' jobs (load average at the end "
+        f"{', '.join(f'{x:.1f}' for x in shared['load_at_end'])}), so wall times are inflated by the load.",
+        "",
+        f"so-bogus on the 30k random problem (one thread, -O3 -march=native): {BOGUS_SHARED_30K['cpu_s']} s CPU, "
+        f"{BOGUS_SHARED_30K['sweeps']} sweeps, its error {BOGUS_SHARED_30K['error']:.1e}, objective "
+        f"{BOGUS_SHARED_30K['objective']:.6e}.  Target: under {TARGET_SHARED_30K_CPU_S} s CPU to that accuracy "
+        "(objective within 1e-6 relative, cone violation < 1e-8); 100k within 4x of the 30k time per contact.",
+        "",
+        SHARED_HEADER,
+    ]
+    lines += [shared_row(r) for r in rows]
+    head = [r for r in rows if r["spec"]["m"] == 30000 and r["spec"].get("pairing") == "random" and r["label"] == "defaults"
+            and r["spec"].get("threads") != "default"]
+    big = [r for r in rows if r["spec"]["m"] == 100000 and r["spec"].get("pairing") == "random" and r["label"] == "defaults"]
+    if head:
+        h = head[0]
+        lines += ["", f"30k CPU times of the {len(h['cpu_s_all'])} processes: "
+                  + ", ".join(f"{x:.2f}" for x in h["cpu_s_all"]) + " s; wall " + ", ".join(f"{x:.2f}" for x in h["wall_s_all"])
+                  + f" s.  so-bogus / groomtool CPU: {BOGUS_SHARED_30K['cpu_s'] / h['cpu_s']:.1f}x."]
+        if big:
+            per = (big[0]["cpu_s"] / 100000) / (h["cpu_s"] / 30000)
+            lines.append(f"100k / 30k CPU time per contact: {per:.2f}x.")
+    return lines
+
+
+def write_markdown(meta, runs, cl_runs, target=None, shared=None):
     lines = [
         "# Contact solver benchmark (generated by bench/bench_solvers.py)",
         "",
+    ]
+    if shared:
+        lines += shared_markdown(shared) + ["", "## groomtool's own generator (bench/problems.py)", ""]
+    lines += [
         f"{meta['date']}, Python {meta['python']}, {meta['cpus']} CPUs (shared machine; load average at the end "
         f"{', '.join(f'{x:.1f}' for x in meta['load_at_end'])}). One core: NUMBA_NUM_THREADS=1, BLAS on one thread.",
         "Problems: bench/problems.py (S = m/4 strands of 20 elements, gamma = 0.01 relative to mean diag(W) = 1,"

@@ -52,6 +52,14 @@ def test_symmetric_gauss_seidel_reaches_clarabels_optimum(form):
     assert res.converged and res.residual <= 1e-10
     assert res.objective == pytest.approx(ref.objective, rel=1e-7)
     assert res.cone_violation <= 1e-12
+    # forward sweeps, then symmetric ones once the residual is <= 1e-5 (checked every 5 sweeps: a
+    # forward + backward pair steps over an odd check point, so the checks then come 6 sweeps apart)
+    late = solve_contact_problem(P, tol=1e-10, form=form, symmetric=1e-5, check_every=5)
+    assert late.converged and late.objective == pytest.approx(ref.objective, rel=1e-7)
+    hist = late.info["history"]
+    k = next(i for i, h in enumerate(hist) if h[1] <= 1e-5)
+    assert {b[0] - a[0] for a, b in zip(hist[:k + 1], hist[1:k + 1])} == {5}
+    assert {b[0] - a[0] for a, b in zip(hist[k:-1], hist[k + 1:-1])} == {6}
     plain = solve_contact_problem(P, tol=1e-10, form=form, symmetric=True, anderson=0, max_iter=20000)
     assert plain.converged and plain.objective == pytest.approx(ref.objective, rel=1e-7)
     assert plain.iterations % 2 == 0  # forward + backward pairs
