@@ -834,9 +834,58 @@ def gravity_force(clothoid: SuperClothoid, linear_density: float, gravity, kin: 
     return linear_density * F
 
 
-def gravity_force_jacobian(clothoid: SuperClothoid, linear_density: float, gravity, chunk: int = 4096):
+@njit(cache=True)
+def _element_subset_kernel(l, a, b, rows, elems, Q, p, P, Mphi, MX, MZ, ser, mu, tmp):
+    """Recompute the listed (row, element) pairs only (:func:`_propagate`); elems < 0 are skipped."""
+    for i in range(rows.shape[0]):
+        r, j = rows[i], elems[i]
+        if j < 0 or j >= l.shape[1]:
+            continue
+        _propagate(a[r, j], b[r, j], l[r, j], Q[r, j], p[r, j], P[r, j], Mphi[r, j], MX[r, j], MZ[r, j],
+                   ser, mu, tmp)
+
+
+def gravity_force_jacobian(clothoid: SuperClothoid, linear_density: float, gravity, kin: Kinematics | None = None,
+                           chunk: int = 1024):
     """dF/dq per strand, (S, 3(N + 1), 3(N + 1)), by the complex step: column (i, c) = Im F(q + i eps e_ic) / eps
-    (eps = 1e-30; exact to round-off since F is analytic in q); zero rows/columns on padding nodes."""
+    (eps = 1e-30; exact to round-off since F is analytic in q); zero rows/columns on padding nodes.
+    A node touches only its two elements: their series are recomputed in complex arithmetic, the other
+    elements are copied from the real kinematics, then the chain and F (O(N) per column)."""
+    kin = _with_moments(clothoid, kin)
+    S, N = clothoid.lengths.shape
+    n = 3 * (N + 1)
+    out = np.zeros((S, n, n))
+    sid_all, col_all = np.nonzero(np.arange(n)[None, :] // 3 <= clothoid.n_elements[:, None])
+    l_all = np.ascontiguousarray(clothoid.lengths)
+    scratch = _scratch(np.complex128)
+    for start in range(0, len(sid_all), chunk):
+        sid = sid_all[start:start + chunk]
+        col = col_all[start:start + chunk]
+        m = len(sid)
+        q = clothoid.curvatures[sid].astype(np.complex128).reshape(m, n)
+        q[np.arange(m), col] += 1j * COMPLEX_STEP
+        sub = SuperClothoid(clothoid.root_positions[sid], clothoid.root_frames[sid], clothoid.lengths[sid],
+                            q.reshape(m, N + 1, 3), clothoid.n_elements[sid])
+        a, b = sub.starts_and_slopes()
+        arrays = [np.ascontiguousarray(getattr(kin, name)[sid], dtype=np.complex128)
+                  for name in ("Q", "p", "P", "Mphi", "MX", "MZ")]
+        node = col // 3
+        rows = np.repeat(np.arange(m, dtype=np.int64), 2)
+        elems = np.stack([node - 1, node], axis=1).ravel().astype(np.int64)
+        _element_subset_kernel(np.ascontiguousarray(l_all[sid]), a, b, rows, elems, *arrays, *scratch)
+        Q, p, P, Mphi, MX, MZ = arrays
+        C = np.empty((m, N + 1, 3), dtype=np.complex128)
+        R = np.empty((m, N + 1, 3, 3), dtype=np.complex128)
+        _chain(np.ascontiguousarray(sub.root_positions, dtype=np.complex128),
+               np.ascontiguousarray(sub.root_frames, dtype=np.complex128), Q, p, C, R)
+        ck = Kinematics(sub, C, R, Q, p, P, Mphi, MX, MZ, a, b, None)
+        F = gravity_force(sub, linear_density, gravity, ck)
+        out[sid, :, col] = F.reshape(m, n).imag / COMPLEX_STEP
+    return out
+
+
+def _gravity_force_jacobian_full(clothoid: SuperClothoid, linear_density: float, gravity, chunk: int = 1024):
+    """The complex step with every element recomputed per column (reference for the tests)."""
     S, N = clothoid.lengths.shape
     n = 3 * (N + 1)
     out = np.zeros((S, n, n))
