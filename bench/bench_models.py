@@ -3,7 +3,8 @@
 Data: USC-HairSalon guide strands (../shared/data/usc/cstrands/*.data, 5 strands x 100 vertices per style).
 Styles: the ``--straight`` straightest and ``--curly`` curliest of all styles by mean turning per metre of
 their strands of at least 15 cm (sum of the polyline's vertex angles / length), plus ``--extra`` (default
-style 3, XL curly, the guides of usc10k), ``--strands`` strands of each (the longest).
+style 3, XL curly, the guides of usc10k), ``--strands`` strands of each (the longest); and ``--harolongo``
+random strands of digital-salon/harolongo.data (21 vertices, cm -> m).
 
 Per strand, at ``--tolerance`` (m, max distance vertex -> fitted curve):
 - production: ``groomtool.fit.fit_groom`` (floating tangents, adaptive N; its own error measure);
@@ -15,7 +16,8 @@ Per strand, at ``--tolerance`` (m, max distance vertex -> fitted curve):
 The LS fitter is a prototype (a local Levenberg-Marquardt with an iteration cap): a failure to reach the
 tolerance at some N can be the optimiser's, not the model's.  Writes bench/results/models.md and models.json.
 
-    python bench/bench_models.py [--tolerance 5e-4] [--straight 2] [--curly 3] [--strands 2]
+    python bench/bench_models.py [--tolerance 5e-4] [--straight 2] [--curly 3] [--strands 2] [--harolongo 4]
+    python bench/bench_models.py --report-only      # models.md from models.json
 """
 
 from __future__ import annotations
@@ -41,6 +43,7 @@ from groomtool.rods import clothoid as cl  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data" / "usc" / "cstrands"
 RESULTS = ROOT / "bench" / "results"
+HAROLONGO = ROOT.parent / "shared" / "data" / "digital-salon" / "harolongo.data"
 
 
 def turning_per_metre(strand: np.ndarray) -> float:
@@ -75,9 +78,15 @@ def main() -> None:
     ap.add_argument("--straight", type=int, default=2)
     ap.add_argument("--curly", type=int, default=3)
     ap.add_argument("--strands", type=int, default=2)
+    ap.add_argument("--harolongo", type=int, default=4, help="random harolongo strands (cm -> m) added")
     ap.add_argument("--extra", nargs="*", default=["cstrands00003.data"],
                     help="styles added as curly (default: style 3, XL curly, the guides of usc10k)")
+    ap.add_argument("--report-only", action="store_true", help="rewrite models.md from models.json")
     args = ap.parse_args()
+    if args.report_only:
+        data = json.loads((RESULTS / "models.json").read_text())
+        write_report(data["meta"], data["rows"])
+        return
     tol = args.tolerance
     rows = []
     styles = pick_styles(args.straight, args.curly)
@@ -85,34 +94,51 @@ def main() -> None:
         if name not in [s[0] for s in styles]:
             strands = list(read_data(DATA / name, repair=True).strands())
             styles.append((name, float(np.mean([turning_per_metre(s) for s in strands])), "curly"))
+    jobs = []
     for name, turning, kind in styles:
         strands = list(read_data(DATA / name, repair=True).strands())
         lengths = [np.linalg.norm(np.diff(s, axis=0), axis=1).sum() for s in strands]
-        for k in np.argsort(lengths)[::-1][:args.strands]:
-            X = strands[k]
-            row = {"style": name, "kind": kind, "style_turning_per_m": turning, "strand": int(k),
-                   "length_m": float(lengths[k]), "vertices": len(X), "strand_turning_per_m": turning_per_metre(X)}
+        jobs += [(name, turning, kind, int(k), strands[k], lengths[k]) for k in np.argsort(lengths)[::-1][:args.strands]]
+    if args.harolongo:
+        haro = list(read_data(HAROLONGO, scale=0.01, repair=True).strands())
+        pick = np.random.default_rng(0).choice(len(haro), args.harolongo, replace=False)
+        for k in pick:
+            X = haro[k]
+            jobs.append(("harolongo", turning_per_metre(X), "harolongo", int(k), X,
+                         float(np.linalg.norm(np.diff(X, axis=0), axis=1).sum())))
+    for name, turning, kind, k, X, length in jobs:
+        row = {"style": name, "kind": kind, "style_turning_per_m": turning, "strand": int(k),
+               "length_m": float(length), "vertices": len(X), "strand_turning_per_m": turning_per_metre(X)}
+        t0 = time.process_time()
+        prod = fit_groom(Groom.from_strands([X]), tolerance=tol)
+        row["production"] = {"n": int(prod.n_elements[0]), "max_error_m": float(prod.max_error[0]),
+                             "cpu_s": time.process_time() - t0}
+        for model in ("helix", "clothoid"):
             t0 = time.process_time()
-            prod = fit_groom(Groom.from_strands([X]), tolerance=tol)
-            row["production"] = {"n": int(prod.n_elements[0]), "max_error_m": float(prod.max_error[0]),
-                                 "cpu_s": time.process_time() - t0}
-            for model in ("helix", "clothoid"):
-                t0 = time.process_time()
-                n, fit, fits = cl.min_elements_ls(X, tol, model, start=int(prod.n_elements[0]))
-                rec = {"n": n, "max_error_m": fit.max_error, "mean_error_m": fit.mean_error, "fits": fits,
-                       "cpu_s": time.process_time() - t0}
-                if model == "helix":
-                    rec["max_bending_jump_per_m"] = helix_curvature_jump(fit.rod)
-                row[model + "_ls"] = rec
-            rows.append(row)
-            print(json.dumps(row), flush=True)
+            n, fit, fits = cl.min_elements_ls(X, tol, model, start=int(prod.n_elements[0]))
+            rec = {"n": n, "max_error_m": fit.max_error, "mean_error_m": fit.mean_error, "fits": fits,
+                   "cpu_s": time.process_time() - t0}
+            if model == "helix":
+                rec["max_bending_jump_per_m"] = helix_curvature_jump(fit.rod)
+            row[model + "_ls"] = rec
+        rows.append(row)
+        print(json.dumps(row), flush=True)
     RESULTS.mkdir(parents=True, exist_ok=True)
-    meta = {"tolerance_m": tol, "machine": f"{os.cpu_count()} CPUs, load average "
+    meta = {"tolerance_m": tol, "args": vars(args), "machine": f"{os.cpu_count()} CPUs, load average "
             + ", ".join(f"{x:.1f}" for x in os.getloadavg()), "numpy": np.__version__, "python": platform.python_version()}
     (RESULTS / "models.json").write_text(json.dumps({"meta": meta, "rows": rows}, indent=1))
+    write_report(meta, rows)
+
+
+def write_report(meta, rows) -> None:
+    tol = meta["tolerance_m"]
     lines = ["# Elements needed: Super-Helix vs Super Space Clothoid (bench/bench_models.py)", "",
              f"tolerance {tol * 1e3:.2f} mm (max distance vertex -> fitted curve); {meta['machine']} (shared box: "
-             "CPU times indicative); USC cstrands styles picked by mean turning per metre.", "",
+             "CPU times indicative); USC cstrands styles picked by mean turning per metre; arguments "
+             f"{meta.get('args', {})}.", "",
+             "Production: fit_groom (floating tangents; starts at ceil(L / 2 cm) elements and only grows, so its N is "
+             "not minimal). helix-LS, clothoid-LS: the smallest N found for the same least-squares prototype fit "
+             "(clothoid.fit_polyline_ls; a local optimiser with an iteration cap: see docs/clothoid.md).", "",
              "| style | kind | strand | L (m) | turning (rad/m) | production helix N (err mm) | helix-LS N (err mm) | "
              "clothoid-LS N (err mm) | clothoid / helix-LS | helix-LS max bending jump (1/m) | CPU s: helix-LS / clothoid-LS |",
              "|---|---|---|---|---|---|---|---|---|---|---|"]
@@ -126,16 +152,18 @@ def main() -> None:
         lines.append(f"| {r['style']} | {r['kind']} | {r['strand']} | {r['length_m']:.3f} | {r['strand_turning_per_m']:.0f} | "
                      f"{r['production']['n']} ({r['production']['max_error_m'] * 1e3:.3f}) | {fmt(h)} | {fmt(c)} | {ratio} | "
                      f"{h['max_bending_jump_per_m']:.1f} | {h['cpu_s']:.1f} / {c['cpu_s']:.1f} |")
-    for kind in ("straight", "curly"):
+    lines += ["", "| kind | strands | production helix elements | helix-LS elements (unknowns 3N) | "
+              "clothoid-LS elements (unknowns 3(N+1)) | clothoid / helix-LS elements | per strand: min - max |",
+              "|---|---|---|---|---|---|---|"]
+    for kind in ("straight", "curly", "harolongo"):
         sel = [r for r in rows if r["kind"] == kind and r["helix_ls"]["n"] and r["clothoid_ls"]["n"]]
         if sel:
             nh = sum(r["helix_ls"]["n"] for r in sel)
             nc = sum(r["clothoid_ls"]["n"] for r in sel)
             npd = sum(r["production"]["n"] for r in sel)
-            lines.append("")
-            lines.append(f"{kind}: {len(sel)} strands, elements in all: production helix {npd}, helix-LS {nh}, "
-                         f"clothoid-LS {nc} (clothoid / helix-LS = {nc / nh:.2f}; a clothoid element has 3 unknowns "
-                         "per node, the same count per element as a helix element plus 3 per strand).")
+            ratios = [r["clothoid_ls"]["n"] / r["helix_ls"]["n"] for r in sel]
+            lines.append(f"| {kind} | {len(sel)} | {npd} | {nh} ({3 * nh}) | {nc} ({3 * (nc + len(sel))}) | "
+                         f"{nc / nh:.2f} | {min(ratios):.2f} - {max(ratios):.2f} |")
     (RESULTS / "models.md").write_text("\n".join(lines) + "\n")
 
 
