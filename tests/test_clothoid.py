@@ -382,3 +382,11 @@ def test_state_only_path_equals_the_full_propagation():
     assert np.array_equal(cl.evaluate(c, strand, s, light)[0], cl.evaluate(c, strand, s)[0])
     with pytest.raises(ValueError, match="moments"):
         cl.gravity_force(c, RHO_S, GRAVITY, light)
+
+
+def test_non_finite_curvatures_propagate_instead_of_hanging():
+    c = random_clothoid(4, n_strands=2, n_elements=3)
+    c.curvatures[1, 2, 1] = np.nan
+    kin = cl.kinematics(c)
+    assert np.isfinite(kin.C[0]).all() and np.isnan(kin.C[1, 2:]).all()
+    assert cl.n_terms(np.nan, 0.0)[0] == cl.K_MAX and cl.n_substeps(np.inf, 0.0, 0.1) == 1

@@ -189,7 +189,7 @@ def n_substeps(A, B, T):
     if T <= 0.0:
         return 0
     den = A + np.sqrt(A * A + 2.0 * B * RHO)
-    if den <= 0.0:
+    if not (den > 0.0 and den < np.inf):  # zero, or NaN / inf curvatures: one step (the NaN propagates)
         return 1
     hmax = RHO / den
     m = int(np.ceil(T / hmax - 1e-12))
@@ -212,6 +212,8 @@ def n_terms(alpha, beta):
             bound = 2.0 * r * max(d, dm1) / (1.0 - r)
             if bound <= TOL or K >= K_MAX:
                 return K, bound
+        elif K >= K_MAX or not (r < np.inf):  # NaN or inf rates: give up at the guard
+            return K_MAX, np.inf
         dn = (al * d + be * dm1) / (K + 1)
         dm1 = d
         d = dn
