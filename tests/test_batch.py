@@ -144,6 +144,12 @@ def test_solver_failure_is_reported_with_exit_code_2(client, data, tmp_path):
     assert row["contacts"] > 0 and row["strands"] == 3
     assert not (out / "g0").exists()
     assert_nothing_half_written(out)
+    if "strict" in params:  # without --strict the feasible forces are written, the warning goes to the summary
+        del params["strict"]
+        (row,) = batch.run_batch(inputs(data, ["g0"]), out, head=data / "head.obj", params=params, client=client,
+                                 quiet=True).rows
+        assert row["status"] == "ok" and row["solve_status"] == "feasible", row
+        assert "FeasibleSolveWarning" in row["warnings"]
 
 
 def test_a_writer_that_fails_leaves_no_partial_output(data, tmp_path, monkeypatch):
@@ -177,6 +183,9 @@ def test_exit_codes_and_bad_batches(data, tmp_path):
         batch.run_batch([data / "g0.obj", other / "g0.obj"], tmp_path / "out", quiet=True)
     with pytest.raises(GroomError, match="no such head mesh"):
         batch.run_batch([data / "g0.obj"], tmp_path / "out", head=tmp_path / "nohead.obj", quiet=True)
+    (tmp_path / "badhead.obj").write_text("v 0 0 0\nv nan 1 0\nv 1 0 0\nf 1 2 3\n")
+    with pytest.raises(GroomError, match="badhead.obj"):  # once, before any worker starts
+        batch.run_batch([data / "g0.obj"], tmp_path / "out", head=tmp_path / "badhead.obj", quiet=True)
     assert main(["batch", str(data / "g0.obj"), "--contacts", "head", "-o", str(tmp_path / "o"), "-q"]) == 1
     assert main(["batch", str(data / "g0.obj"), "--memory-limit", "lots", "-o", str(tmp_path / "o"), "-q"]) == 1
 

@@ -38,6 +38,7 @@ import sys
 import time
 import traceback
 import uuid
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -53,11 +54,18 @@ DEFAULT_FORMATS = ("npz", "obj", "json")
 THREAD_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1",
               "NUMBA_NUM_THREADS": "1", "VECLIB_MAXIMUM_THREADS": "1", "NUMEXPR_NUM_THREADS": "1"}
 
+# Local cluster: less background polling than Dask's defaults (the statistical profiler every 10 ms, the
+# event-loop tick every 20 ms, system and memory monitors): on a loaded 2-core machine they took
+# ~7 % of a core, idle, out of the cores the inversions need (bench/results/batch.md).
+LOCAL_CONFIG = {"distributed.worker.profile.enabled": False, "distributed.admin.tick.interval": "100ms",
+                "distributed.admin.system-monitor.interval": "2s",
+                "distributed.worker.memory.monitor-interval": "500ms"}
+
 # the summary's columns, in order (CSV header; the JSON rows carry these plus ``timings_s``)
 COLUMNS = ("name", "input", "status", "strands", "elements", "contacts", "contacts_head", "contacts_strand",
            "solver", "solve_status", "solve_iterations", "residual", "q0_error_bound", "equilibrium_residual",
            "unstable_strands", "unstable_with_contacts", "q0_max", "q0_change_max", "fit_max_error_m",
-           "load_s", "invert_s", "write_s", "wall_s", "worker", "worker_peak_rss_mib", "output", "error")
+           "load_s", "invert_s", "write_s", "wall_s", "worker", "worker_peak_rss_mib", "output", "error", "warnings")
 
 
 @dataclass
@@ -205,8 +213,10 @@ def invert_one(path, outdir, head=None, params=None, load_options=None, formats=
     load_options = dict(load_options or {})
     units_name = load_options.pop("units_name", None)
     units = load_options.get("units", "m")
+    caught = []
     try:
-        with _limit_threads():
+        with _limit_threads(), warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
             try:
                 groom = load_groom(path, **load_options)
                 mesh = _load_head_cached(head, units) if head is not None else None
@@ -238,6 +248,8 @@ def invert_one(path, outdir, head=None, params=None, load_options=None, formats=
     finally:
         row["wall_s"] = time.perf_counter() - t0
         row["worker_peak_rss_mib"] = _peak_rss_mib()
+        # warnings go to the summary, not to the terminal the progress bar is on
+        row["warnings"] = "; ".join(dict.fromkeys(f"{w.category.__name__}: {w.message}" for w in caught)) or None
     return row
 
 
@@ -346,7 +358,7 @@ def _local_cluster(workers: int, memory_limit, retries: int):
     from distributed import LocalCluster
 
     with dask.config.set({"distributed.scheduler.allowed-failures": int(retries),
-                          "distributed.nanny.pre-spawn-environ": THREAD_ENV}):
+                          "distributed.nanny.pre-spawn-environ": THREAD_ENV, **LOCAL_CONFIG}):
         return LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, memory_limit=memory_limit,
                             dashboard_address=":0", silence_logs=logging.ERROR, env=dict(THREAD_ENV))
 
@@ -395,6 +407,10 @@ def run_batch(inputs, outdir, head=None, params=None, *, units="m", scale: float
         raise GroomError(f"{outdir}: cannot create the output directory: {exc.strerror or exc}") from None
     for p in paths:  # before any computation: every groom's output set can be written there
         check_target(outdir / p.stem, inputs=(p, head))
+    if head is not None:  # a bad head fails the batch once, here, not every groom on the workers
+        from .io import load_head
+
+        load_head(head, units=unit_scale(units) * scale)
     if not (np.isfinite(scale) and scale > 0):
         raise GroomError(f"scale must be a positive number, got {scale:g}")
     load_options = {"units": unit_scale(units) * scale if scale != 1.0 else units, "up": up, "repair": repair,
