@@ -137,3 +137,24 @@ def test_head_without_contacts_says_what_it_does(tmp_path, capsys):
     assert main(["invert", str(groom_path), "--head", str(head_path), "--contacts", "head",
                  "-o", str(tmp_path / "o2")]) == EXIT_OK
     assert "--head without --contacts" not in capsys.readouterr().err
+
+
+def test_summary_says_when_roots_are_inside_or_far_from_the_head():
+    from groomtool.cli.main import root_notes
+
+    assert root_notes({"mode": "gap_reported", "median_gap_m": 2e-4, "max_gap_m": 3e-4, "inside_head": 0}) == []
+    inside = root_notes({"mode": "gap_reported", "median_gap_m": 2e-4, "max_gap_m": 3e-4, "inside_head": 7})
+    assert len(inside) == 1 and "7 roots are inside the head" in inside[0] and "--snap-roots" in inside[0]
+    assert root_notes({"mode": "snapped", "median_gap_m": 2e-4, "max_gap_m": 3e-4, "inside_head": 7}) == []
+    far = root_notes({"mode": "gap_reported", "median_gap_m": 0.05, "max_gap_m": 0.06, "inside_head": 0})
+    assert len(far) == 1 and "more than 1 cm" in far[0]
+
+
+def test_invert_summary_reports_far_roots(tmp_path, capsys):
+    from groomtool.examples import write_example
+
+    groom_path, head_path = write_example(tmp_path, n_strands=4, seed=3)
+    moved = tmp_path / "far_head.obj"
+    trimesh.load(head_path, force="mesh").apply_translation([0.5, 0, 0]).export(moved)
+    assert main(["invert", str(groom_path), "--head", str(moved), "-o", str(tmp_path / "o")]) == EXIT_OK
+    assert "more than 1 cm from the head" in capsys.readouterr().out

@@ -337,10 +337,23 @@ def summary(result, written) -> str:
     if "roots" in r:
         lines.append(f"  roots        {r['roots']['mode']}: median gap {r['roots']['median_gap_m'] * 1e3:.2f} mm, "
                      f"max {r['roots']['max_gap_m'] * 1e3:.2f} mm")
+        lines += [f"               {note}" for note in root_notes(r["roots"])]
     lines.append(f"  time         {r['timings_s']['total']:.2f} s   "
                  + ", ".join(f"{k} {v:.2f}" for k, v in r["timings_s"].items() if k != "total"))
     lines.append("  wrote        " + ", ".join(str(p) for p in written))
     return "\n".join(lines)
+
+
+def root_notes(roots: dict) -> list[str]:
+    """What the root gaps of report.json say to a newcomer: roots inside or far from the head."""
+    notes = []
+    inside = int(roots.get("inside_head", 0))
+    if inside and roots.get("mode") != "snapped":
+        notes.append(f"{inside} roots are inside the head (--snap-roots puts them on its surface)")
+    if roots.get("median_gap_m", 0.0) > 0.01:
+        notes.append("the roots are more than 1 cm from the head (median): are the groom and the head in the same "
+                     "units and frame? (groom info INPUT --head MESH)")
+    return notes
 
 
 class UserError(Exception):
