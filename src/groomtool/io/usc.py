@@ -25,8 +25,8 @@ def _strand_counts(data: bytes, source: str) -> np.ndarray:
     if n_strands < 0:
         raise GroomError(f"{source}: negative strand count {n_strands}: not a USC .data file?")
     if 4 * n_strands > size - 4:  # each strand has its vertex count at least
-        raise GroomError(f"{source}: {n_strands} strands declared but the file ({size} bytes) holds at most "
-                         f"{(size - 4) // 4}: corrupt, or not a USC .data file")
+        raise GroomError(f"{source}: {n_strands} strands declared but the file ({size} bytes) ends before the "
+                         f"vertex count of strand {(size - 4) // 4} at the latest: corrupt, or not a USC .data file")
     counts = np.empty(n_strands, dtype=np.int64)
     pos = 4
     for i in range(n_strands):
