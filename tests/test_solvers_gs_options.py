@@ -87,3 +87,42 @@ def test_solve_socqp_does_not_use_blas_in_the_sweep_loop(monkeypatch):
     monkeypatch.setattr(gs.np, "dot", forbidden)
     res = gs.run_gauss_seidel(AssembledOperator.from_sparse(W, P.b, P.mu), tol=1e-9)
     assert res.converged and res.sweeps > 20
+
+
+SHARED_GEN = Path(__file__).resolve().parents[2] / "shared" / "bench" / "gen_hair_problem.py"
+
+
+@pytest.mark.skipif(not SHARED_GEN.exists(), reason="the shared generator (../shared/bench) is not checked out")
+@pytest.mark.parametrize("pairing", ["random", "local"])
+def test_shared_generator_problem_is_read_and_solved(tmp_path, pairing):
+    """bench/problems.read_bogus_problem on a small file of the shared generator (the issue-22 headline
+    problems): W symmetric with the stored lower blocks in place, and Gauss-Seidel with solve_socqp's
+    defaults at clarabel's optimum."""
+    import struct
+    import subprocess
+    import sys
+
+    out = tmp_path / "p.bin"
+    subprocess.run([sys.executable, str(SHARED_GEN), "--contacts", "150", "--pairing", pairing, "--gamma", "0.01",
+                    "--seed", "3", "-o", str(out)], check=True, capture_output=True)
+    W, b, mu = problems.read_bogus_problem(out)
+    raw = out.read_bytes()
+    n, nnzb = struct.unpack("<qq", raw[8:24])
+    assert W.shape == (3 * n, 3 * n) and b.shape == (3 * n,) and mu.shape == (n,)
+    rows = np.frombuffer(raw, "<i8", nnzb, 24)
+    cols = np.frombuffer(raw, "<i8", nnzb, 24 + 8 * nnzb)
+    vals = np.frombuffer(raw, "<f8", 9 * nnzb, 24 + 16 * nnzb).reshape(nnzb, 3, 3)
+    k = int(np.flatnonzero(rows != cols)[0])
+    i, j = rows[k], cols[k]
+    np.testing.assert_array_equal(W[3 * i:3 * i + 3, 3 * j:3 * j + 3].toarray(), vals[k])
+    np.testing.assert_array_equal(W[3 * j:3 * j + 3, 3 * i:3 * i + 3].toarray(), vals[k].T)
+    assert abs(W - W.T).max() <= 1e-12 * abs(W).max()  # the file's diagonal blocks: symmetric to round-off
+    ref = solve_socqp(W, b, mu, method="clarabel", polish=False)
+    res = solve_socqp(W, b, mu)
+    assert ref.status == "Solved"
+    assert res.converged and res.residual <= 1e-8 and res.cone_violation <= 1e-12
+    assert res.objective == pytest.approx(ref.objective, rel=1e-7)
+    with pytest.raises(ValueError):
+        bad = tmp_path / "bad.bin"
+        bad.write_bytes(b"NOTAPROB" + raw[8:])
+        problems.read_bogus_problem(bad)
