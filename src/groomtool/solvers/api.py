@@ -209,6 +209,7 @@ def solve_socqp(W, b, mu, method: str = "gs", tol: float = 1e-8, max_iter: int |
     (interior point, then Gauss-Seidel sweeps from its optimum until the residual is below tol), "auto"
     (= "gs").  tol: on the residual of residual.py (every method).
     options: gs: anderson=8 (memory; 0 = plain Gauss-Seidel), anderson_start=10, omega=1.0, order="natural",
+    symmetric=False (True: forward + backward sweeps; a residual: switch to them once there, run_gauss_seidel),
     check_every=10, time_limit, scale (replaces max_i rho_i ||b_i|| in the residual, e.g. to floor it),
     give_up (stop, status "stalled", once the run's rate projects more than give_up * max_iter sweeps:
     gauss_seidel.projected_sweeps), callback(sweeps, residual) at every residual check (also during
