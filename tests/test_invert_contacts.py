@@ -47,7 +47,7 @@ def sphere():
 
 def _params(**kw):
     base = dict(material=MAT, tolerance=2e-4, contacts="all", contact_radius=5e-4, solver="clarabel",
-                solver_tolerance=1e-10, discrete_rest_data=False)
+                solver_tolerance=1e-10, q0_tolerance=None, discrete_rest_data=False)
     base.update(kw)
     return InversionParams(**base)
 
@@ -231,24 +231,67 @@ def test_auto_falls_back_to_clarabel_when_gauss_seidel_does_not_converge(draped,
     assert solve["objective"] == pytest.approx(ref.report["solve"]["objective"], rel=1e-7)
 
 
-def test_gauss_seidel_gives_up_early_on_dense_contacts_and_says_what_to_do(draped, sphere):
-    """Forced Gauss-Seidel on the dense draped groom: stopped once its rate projects past twice the budget,
-    long before the budget is spent; the error says how far it got and how to accept these forces."""
-    from groomtool.invert import GS_GIVE_UP, SolverFailure
+def test_gauss_seidel_gives_up_early_on_dense_contacts_and_says_what_to_do(draped, sphere, monkeypatch):
+    """Gauss-Seidel that gives up (status "stalled"): with strict, the error says how far it got, how dense the
+    contacts are and how to accept these forces.
+
+    The premise is set so that it cannot depend on round-off: with GS_GIVE_UP = 0.05 the limit (80 sweeps for
+    a budget of 1,600) is below every projection (>= the sweeps run), so the rule stops the run at the first
+    sweep it judges, 400, unless it has converged.  The draped groom itself converges at tolerance 1e-10 in
+    1,000-4,000 sweeps depending on round-off (Anderson mixing amplifies it: 1e-13 perturbations of H and b
+    turned the default rule's verdict at a budget of 1,600 into 'max_iter' in 7 of 12 runs and 'stalled' at
+    400-1,210 sweeps in the others), so whether the default factor 2 gives up on it is not a property of the
+    groom (docs/solvers.md section 4); that the rule is right on a slow linear rate is tested in
+    test_solvers_global.py."""
+    import sys
+
+    from groomtool.invert import SolverFailure
 
     groom, _ = draped
+    monkeypatch.setattr(sys.modules["groomtool.invert"], "GS_GIVE_UP", 0.05)
     with pytest.raises(SolverFailure) as info:
-        invert_groom(groom, head=sphere, params=_params(solver="gs", max_iterations=1600))
+        invert_groom(groom, head=sphere, params=_params(solver="gs", max_iterations=1600, strict=True))
     exc = info.value
     solve = exc.report["solve"]
     assert exc.status == "stalled" and solve["status"] == "stalled"
-    assert solve["iterations"] < 1600 and solve["projected_sweeps"] > GS_GIVE_UP * 1600
+    assert solve["iterations"] == 400 and solve["projected_sweeps"] > 0.05 * 1600
     msg = str(exc)
     assert "would need about" in msg and "--solver-tolerance" in msg and "dense" in msg
-    # it was right to: twice the budget does not converge either
-    with pytest.raises(SolverFailure) as again:
-        invert_groom(groom, head=sphere, params=_params(solver="gs", max_iterations=int(GS_GIVE_UP * 1600)))
-    assert again.value.report["solve"]["residual"] > 1e-10
+    assert "without --strict" in msg and "certified within" in msg
+
+
+def test_unconverged_solve_keeps_its_feasible_forces_with_a_certified_bound(draped, sphere):
+    """Without strict, a solve that runs out of sweeps keeps its forces (projected onto their cones): status
+    "feasible", an exact equilibrium, a one-line warning, and a rest-curvature bound that holds against the
+    certified optimum of the fixture (clarabel + polish to 1e-10)."""
+    from groomtool.invert import FeasibleSolveWarning
+
+    groom, ref = draped
+    with pytest.warns(FeasibleSolveWarning, match=r"stopped \(max_iter\).*exact equilibrium.*certified within"):
+        res = invert_groom(groom, head=sphere, params=_params(solver="gs", max_iterations=200))
+    solve = res.report["solve"]
+    assert solve["status"] == "feasible" and solve["stopped_with"] == "max_iter" and solve["iterations"] == 200
+    assert solve["residual"] > 1e-6 and "warning" in solve
+    assert solve["cone_violation"] <= 1e-14 * np.abs(res.forces).max()
+    assert res.report["equilibrium"]["max_relative_residual"] < 1e-8
+    true = np.linalg.norm(res.rest_curvatures - ref.rest_curvatures) / np.linalg.norm(ref.rest_curvatures)
+    ref_bound = ref.report["solve"]["q0_error_bound"]
+    assert ref_bound < 1e-6
+    assert solve["q0_error_bound"] >= true - ref_bound
+    assert solve["q0_error_bound"] < 30 * true  # and it says something (measured 3.4x here)
+    assert solve["q0_error_bound_abs"] > 0
+
+
+def test_q0_tolerance_stops_gauss_seidel_once_the_rest_curvatures_are_certified(draped, sphere):
+    groom, ref = draped
+    res = invert_groom(groom, head=sphere, params=_params(solver="gs", q0_tolerance=1e-4))
+    solve = res.report["solve"]
+    assert solve["status"] == "solved" and solve["stopped_on"] == "q0_tolerance"
+    assert solve["residual"] > 1e-10  # stopped before the residual target
+    assert solve["q0_error_bound"] <= 1e-4
+    true = np.linalg.norm(res.rest_curvatures - ref.rest_curvatures) / np.linalg.norm(ref.rest_curvatures)
+    assert true <= solve["q0_error_bound"] + ref.report["solve"]["q0_error_bound"]
+    assert res.report["parameters"]["q0_tolerance"] == 1e-4
 
 
 def test_failure_message_of_a_diverged_solve_has_no_tolerance_advice():

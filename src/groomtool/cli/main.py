@@ -18,6 +18,7 @@ from . import export_cmd, simulate_cmd, view_cmd
 EXIT_OK, EXIT_USER_ERROR, EXIT_NOT_CONVERGED = 0, 1, 2
 EXIT_INTERNAL_ERROR = 3  # an unexpected exception: a bug, reported in one line (GROOM_DEBUG=1: traceback)
 DEFAULT_TOLERANCE_M = 5e-4  # the fit tolerance when --tolerance is not given, whatever --units says
+Q0_TOLERANCE = 1e-3  # --q0-tolerance default (= invert.Q0_TOLERANCE; docs/solvers.md section 10)
 
 
 class _Parser(argparse.ArgumentParser):
@@ -33,7 +34,7 @@ EPILOG_INVERT = """examples:
   groom invert guides.hair --up z --tolerance 2e-4 --young 2.5e9 --radius 35e-6 --quiet
 
 outputs (in OUTDIR, written as one atomic set): rest.npz, rest_shape.obj, fitted.obj, report.json
-exit codes: 0 ok, 1 user error, 2 solver did not converge (nothing written)
+exit codes: 0 ok, 1 user error, 2 solver did not converge (with --strict; nothing written)
 """
 
 
@@ -110,6 +111,14 @@ def build_parser() -> argparse.ArgumentParser:
                           "the rest curvatures are to the guess; see docs/solvers.md)")
     inv.add_argument("--max-sweeps", type=int, default=5000, metavar="N",
                      help="Gauss-Seidel sweep budget of the contact solve (default 5000)")
+    inv.add_argument("--q0-tolerance", type=float, default=Q0_TOLERANCE, metavar="TOL",
+                     help="stop the contact solve once the rest curvatures are certified within TOL (relative) of "
+                          f"the optimum's (default {Q0_TOLERANCE:g}; 0 turns it off; report.json: "
+                          "solve.q0_error_bound; docs/solvers.md)")
+    inv.add_argument("--strict", action="store_true",
+                     help="a contact solve that stops before its tolerances is an error (exit 2, nothing written); "
+                          "by default its forces, which lie in their cones and so give an exact equilibrium, are "
+                          "written with solve.status 'feasible' and a warning")
     inv.add_argument("--rod-segments", type=int, default=None, metavar="N",
                      help="resolution of the discrete (Cosserat/DER) rest data: N equal segments per strand "
                           "(default: the input's own vertices)")
@@ -291,6 +300,8 @@ def _check_invert_options(args) -> None:
                         f"got {args.rod_segments}")
     if args.gamma is not None and not (0 <= args.gamma < np.inf):
         raise UserError(f"--gamma must be >= 0 and finite, got {args.gamma:g}")
+    if not (0 <= args.q0_tolerance < np.inf):
+        raise UserError(f"--q0-tolerance must be >= 0 and finite (0: off), got {args.q0_tolerance:g}")
 
 
 def _invert_params(args, scale):
@@ -303,6 +314,7 @@ def _invert_params(args, scale):
         relative_tolerance=args.relative_tolerance, contacts=args.contacts,
         contact_radius=None if args.contact_radius is None else args.contact_radius * scale,
         guess=args.guess, solver=args.solver, solver_tolerance=args.solver_tolerance, max_iterations=args.max_sweeps,
+        q0_tolerance=args.q0_tolerance or None, strict=args.strict,
         snap_roots=args.snap_roots, rod_segments=args.rod_segments,
         **({} if args.gamma is None else {"gamma": args.gamma}))
 

@@ -34,7 +34,8 @@ class SolveResult:
 
     r:              (3m,) reactions, [N, T1, T2] per contact.
     status:         "solved", "max_iter", "time_limit", "stalled" (gs with give_up: info["projected_sweeps"]),
-                    "diverged" (iterative methods) or clarabel's status.
+                    "certified" (gs: the caller's ``stop`` rule accepted r before the residual reached tol;
+                    converged stays False), "diverged" (iterative methods) or clarabel's status.
     converged:      residual <= tol.  clarabel: it reported Solved and its point, polished by Gauss-Seidel
                     sweeps where its residual was above tol (info: polish_sweeps, clarabel_residual), meets tol.
     residual:       max_i ||r_i - P_K(r_i - rho_i u_eff_i)|| / max_i rho_i ||b_i||   (residual.py).
@@ -61,6 +62,8 @@ class SolveResult:
 def _iterative_status(converged: bool, residual: float, iterations: int, max_iter: int, info: dict) -> str:
     if converged:
         return "solved"
+    if info.get("stopped_by") == "stop":
+        return "certified"
     if not np.isfinite(residual):
         return "diverged"
     if info.get("projected_sweeps") is not None:
@@ -103,6 +106,8 @@ def _run_gs_family(op, law, method, tol, max_iter, r0, options, info):
         return fp.r, out.sweeps + fp.sweeps, fp.converged, fp.residual
     if out.projected_sweeps is not None:  # stopped by give_up
         info["projected_sweeps"] = out.projected_sweeps
+    if out.stopped_by_rule:  # the caller's stop rule accepted r (status "certified")
+        info["stopped_by"] = "stop"
     return out.r, out.sweeps, out.converged, out.residual
 
 
@@ -213,7 +218,8 @@ def solve_socqp(W, b, mu, method: str = "gs", tol: float = 1e-8, max_iter: int |
     check_every=10, time_limit, scale (replaces max_i rho_i ||b_i|| in the residual, e.g. to floor it),
     give_up (stop, status "stalled", once the run's rate projects more than give_up * max_iter sweeps:
     gauss_seidel.projected_sweeps), callback(sweeps, residual) at every residual check (also during
-    clarabel's polish);
+    clarabel's polish), stop(r, u) -> bool (the caller's own rule, asked at every check: True ends the run,
+    status "certified"; e.g. certificate.error_bound below a tolerance);
     apgd: check_every, time_limit; clarabel: threads, linear_solver, time_limit, polish=True (False: return
     clarabel's own point, converged when clarabel reports Solved, whatever its residual)."""
     return _solve_assembled(W, b, mu, "soc", method, tol, max_iter, r0, dict(options))

@@ -437,6 +437,7 @@ class GSOutcome:
     solve_s: float = 0.0
     stalled: bool = False
     projected_sweeps: float | None = None  # set when stopped by ``give_up``
+    stopped_by_rule: bool = False  # the caller's ``stop`` accepted r (before the residual reached tol)
 
 
 GIVE_UP_MIN_SWEEPS = 400  #: sweeps before ``give_up`` may judge a run
@@ -501,6 +502,7 @@ def run_gauss_seidel(
     give_up: float | None = None,
     symmetric: bool | float = False,
     callback=None,
+    stop=None,
 ) -> GSOutcome:
     """Sweep until residual <= tol (residual.py; checked every ``check_every`` sweeps) or max_sweeps.
 
@@ -524,6 +526,9 @@ def run_gauss_seidel(
     small: inexact local solves slow Anderson-accelerated sweeps down on hard problems (the bundled
     example at tol 1e-6: 1e-5 converges in 4,460 sweeps, 1e-4 and 1e-3 do not within 5,000).
     callback(sweeps, residual): called at every residual check (progress bars).
+    stop(r, u) -> bool: the caller's own stopping rule, asked at every residual check with the current r and
+    u = W r + b (both (3m,), the caller's contact order); True ends the run (outcome.stopped_by_rule), e.g.
+    once a certified error bound (certificate.py) is small enough.
     The returned r is always a Gauss-Seidel image (so each r_i solves its local problem, to within
     local_tol_fraction of the target) and its residual is measured exactly; non-convergence is
     reported, never hidden."""
@@ -539,8 +544,12 @@ def run_gauss_seidel(
     mu, rho = op.mu, op.rho
     atol = max(0.0, float(local_tol_fraction)) * tol * scale
 
+    last_u = [None]
+
     def measure(r):
-        emax, _ = _res.residual_max_rms(code, r, op.velocity(r), mu, rho)
+        u = op.velocity(r)
+        last_u[0] = u
+        emax, _ = _res.residual_max_rms(code, r, u, mu, rho)
         return emax / scale
 
     t0 = time.perf_counter()
@@ -551,6 +560,7 @@ def run_gauss_seidel(
     fails = 0
     stalled = False
     gave_up_at = None  # the projection that stopped the run (give_up)
+    by_rule = False
     if res <= tol or max_sweeps <= 0:
         return GSOutcome(op.to_external(x), float(res), 0, bool(res <= tol), 0, history, time.perf_counter() - t0)
     mixer = AndersonMixer(3 * m, anderson) if anderson > 0 else None
@@ -584,6 +594,9 @@ def run_gauss_seidel(
             if callback is not None:
                 callback(sweeps, res)
             if res <= tol or not math.isfinite(res):
+                break
+            if stop is not None and stop(op.to_external(g), op.to_external(last_u[0])):
+                by_rule = True
                 break
             if time_limit is not None and time.perf_counter() - t0 > time_limit:
                 break
@@ -621,4 +634,4 @@ def run_gauss_seidel(
         history.append((sweeps, res, time.perf_counter() - t0))
     solve_s = time.perf_counter() - t0
     return GSOutcome(op.to_external(g), float(res), sweeps, bool(res <= tol), int(fails), history, solve_s, stalled,
-                     gave_up_at)
+                     gave_up_at, by_rule)
