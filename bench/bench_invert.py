@@ -9,8 +9,9 @@ Grooms (../shared/data, see MANIFEST.md there):
 Each (groom, contact mode) runs `groomtool.invert.invert_groom` in its own subprocess with one thread
 (numba, BLAS) and reports the wall seconds of every stage (report.json's timings_s), the process CPU time,
 the peak resident memory, the contact counts and the solver's outcome.  A solve that does not reach its
-tolerance within --max-sweeps is reported with its residual (invert raises SolverFailure; the stages up to
-the solve are still timed).  Loading the files is timed apart (`load`).  Writes bench/results/invert.md
+tolerance within --max-sweeps keeps its feasible forces (status `feasible`, its residual and the certified
+rest-curvature error bound q0_error_bound; the later stages run); with --strict invert raises SolverFailure
+instead (the stages up to the solve are still timed).  Loading the files is timed apart (`load`).  Writes bench/results/invert.md
 and invert.json.
 
     python bench/bench_invert.py                          # both grooms, contacts head and all
@@ -61,14 +62,15 @@ def run_child(spec: dict) -> dict:
     t0, c0 = time.perf_counter(), time.process_time()
     groom, head, snap = _load(spec["groom"])
     load_s = time.perf_counter() - t0
+    extra = {k: spec[k] for k in ("q0_tolerance", "strict") if k in spec}
     params = InversionParams(contacts=spec["mode"], snap_roots=snap, max_iterations=spec["max_sweeps"],
-                             solver=spec.get("solver", "auto"))
+                             solver=spec.get("solver", "auto"), **extra)
     c1 = time.process_time()
     out: dict = {"spec": spec, "load_s": load_s, "strands": groom.n_strands}
     try:
         result = invert_groom(groom, head=head, params=params)
         report = result.report
-        out["converged"] = True
+        out["converged"] = report.get("solve", {}).get("status", "solved") == "solved"
     except SolverFailure as exc:
         report = exc.report
         out["converged"] = False
@@ -112,14 +114,17 @@ def markdown(meta: dict, runs: list[dict]) -> str:
         f"process, numba caches warm. Solver: `auto` unless the row says otherwise (Gauss-Seidel for sparse contacts "
         f"or beyond 10,000, clarabel + Gauss-Seidel polish for dense ones up to 10,000: docs/solvers.md section 9), "
         f"tolerance 1e-8, at most the row's sweep budget (a row that is not converged stopped there, or earlier "
-        f"when its rate projected more than twice the budget over the last fifth of the run: `stalled`; its later stages did not run).",
+        f"when its rate projected more than twice the budget over the last fifth of the run: `stalled`); since issue 16 such a "
+        f"run keeps its feasible forces (`feasible`, later stages run) unless `--strict`. `q0 bound`: the certified relative "
+        f"rest-curvature error of the forces written (docs/solvers.md section 11); the solve stops once it is below "
+        f"--q0-tolerance (1e-3 by default, `solved (q0)`).",
         "",
         "Stage columns are wall seconds of `invert_groom` (report.json `timings_s`); `cpu` is the process CPU "
         "time of invert_groom (loading excluded).",
         "",
         "| groom | contacts mode | strands | elements | contacts (head / s-s) | solver (asked) | status | sweeps / its (budget) | "
-        "residual | " + " | ".join(STAGES) + " | total s | cpu s | peak MB |",
-        "|---|---|---|---|---|---|---|---|---|" + "---|" * len(STAGES) + "---|---|---|",
+        "residual | q0 bound | " + " | ".join(STAGES) + " | total s | cpu s | peak MB |",
+        "|---|---|---|---|---|---|---|---|---|---|" + "---|" * len(STAGES) + "---|---|---|",
     ]
     for r in runs:
         s = r["spec"]
@@ -132,7 +137,12 @@ def markdown(meta: dict, runs: list[dict]) -> str:
         its = sv.get("iterations")
         if sv.get("polish_sweeps"):
             its = f"{its} + {sv['polish_sweeps']} polish"
-        status = "solved" if r["converged"] else f"NOT converged ({sv.get('status')})"
+        if r["converged"]:
+            status = "solved (q0)" if sv.get("stopped_on") == "q0_tolerance" else "solved"
+        elif sv.get("status") == "feasible":
+            status = f"feasible ({sv.get('stopped_with')})"
+        else:
+            status = f"NOT converged ({sv.get('status')})"
         if sv.get("projected_sweeps"):
             status += f", projected {sv['projected_sweeps']:,.0f} sweeps"
         lines.append(
@@ -140,7 +150,7 @@ def markdown(meta: dict, runs: list[dict]) -> str:
             + (f"{c.get('total', 0):,} ({c.get('strand_head', 0):,} / {c.get('strand_strand', 0):,})" if c else "-")
             + f" | {sv.get('solver', '-')} ({s.get('solver', 'auto')}) | {status} | "
             f"{its if its is not None else '-'} ({s['max_sweeps']}) | "
-            f"{_f(sv.get('residual'), '{:.1e}')} | "
+            f"{_f(sv.get('residual'), '{:.1e}')} | {_f(sv.get('q0_error_bound'), '{:.1e}')} | "
             + " | ".join(_f(t.get(k)) for k in STAGES)
             + f" | {_f(sum(v for k, v in t.items() if k != 'total'))} | {_f(r['cpu_s'])} | {r['rss_peak_mb']:.0f} |"
         )
@@ -154,6 +164,8 @@ def main() -> None:
     ap.add_argument("--modes", default="none,head,all")
     ap.add_argument("--max-sweeps", type=int, default=500)
     ap.add_argument("--solver", default="auto", choices=["auto", "gs", "clarabel"])
+    ap.add_argument("--q0-tolerance", type=float, default=None, help="(default: invert's own)")
+    ap.add_argument("--strict", action="store_true")
     ap.add_argument("--append", action="store_true", help="add the rows to the existing results file")
     ap.add_argument("--timeout", type=float, default=1800)
     ap.add_argument("--out", type=Path, default=RESULTS / "invert")
@@ -171,8 +183,12 @@ def main() -> None:
         runs = json.loads(args.out.with_suffix(".json").read_text())["runs"]
     for groom in args.grooms.split(","):
         for mode in args.modes.split(","):
-            runs.append(child({"groom": groom, "mode": mode, "max_sweeps": args.max_sweeps, "solver": args.solver},
-                              args.timeout))
+            spec = {"groom": groom, "mode": mode, "max_sweeps": args.max_sweeps, "solver": args.solver}
+            if args.q0_tolerance is not None:
+                spec["q0_tolerance"] = args.q0_tolerance or None
+            if args.strict:
+                spec["strict"] = True
+            runs.append(child(spec, args.timeout))
             r = runs[-1]
             print(json.dumps({k: r.get(k) for k in ("spec", "converged", "cpu_s", "timings_s", "contacts", "error")}),
                   flush=True)

@@ -60,7 +60,7 @@ class InversionParams:
     solver_tolerance: float = 1e-8
     max_iterations: int = 5000
     q0_tolerance: float | None = 1e-3  # stop once the certified relative rest-curvature error is below (None: off;
-    #                                    the default: Q0_TOLERANCE, docs/solvers.md section 10)
+    #                                    the default: Q0_TOLERANCE, docs/solvers.md section 11)
     strict: bool = False  # an unconverged solve raises SolverFailure instead of returning its feasible forces
     snap_roots: bool = False
     samples_per_element: int = 8

@@ -18,7 +18,7 @@ from . import export_cmd, simulate_cmd, view_cmd
 EXIT_OK, EXIT_USER_ERROR, EXIT_NOT_CONVERGED = 0, 1, 2
 EXIT_INTERNAL_ERROR = 3  # an unexpected exception: a bug, reported in one line (GROOM_DEBUG=1: traceback)
 DEFAULT_TOLERANCE_M = 5e-4  # the fit tolerance when --tolerance is not given, whatever --units says
-Q0_TOLERANCE = 1e-3  # --q0-tolerance default (= invert.Q0_TOLERANCE; docs/solvers.md section 10)
+Q0_TOLERANCE = 1e-3  # --q0-tolerance default (= invert.Q0_TOLERANCE; docs/solvers.md section 11)
 
 
 class _Parser(argparse.ArgumentParser):
