@@ -157,3 +157,23 @@ def test_projection_onto_the_cones():
     assert moved == pytest.approx(np.linalg.norm(p3 - r3, axis=1).max())
     again, moved2 = project_forces(p, mu)
     assert moved2 <= 1e-15 and np.allclose(again, p, atol=0, rtol=1e-15)
+
+
+def test_bound_from_a_dual_point_holds_and_matches_the_primal_one_at_l_equal_y():
+    """error_bound_with_dual: with l = A^T r it is the plain bound; with the dual's own point (r = r(l), a
+    dual method's iterate) it holds against the independent optimum too."""
+    from groomtool.solvers.certificate import error_bound_with_dual
+
+    P = random_problem(11, 20, 3, 6, 1e-2, 0.5, redundant=True)
+    r_star, slack = cvxpy_optimum(P)
+    y_star = y_of(P, r_star)
+    rng = np.random.default_rng(4)
+    r, _ = project_forces(r_star + 0.05 * rng.standard_normal(3 * P.n_contacts), P.mu)
+    plain = error_bound(P, r, line_search=False)["bound"]
+    assert error_bound_with_dual(P, r, y_of(P, r))["bound"] == pytest.approx(plain, rel=1e-9)
+    for scale in (0.0, 0.3, 1.0):
+        lam = y_star + scale * rng.standard_normal(y_star.size)
+        c = P.H @ (np.sqrt(P.D_data) * lam) + P.b
+        r_lam, _ = project_forces(-c / (2 * P.gamma), P.mu)
+        bound = error_bound_with_dual(P, r_lam, lam)["bound"]
+        assert bound >= np.linalg.norm(y_of(P, r_lam) - y_star) - slack

@@ -154,3 +154,24 @@ def error_bound(problem, r, u=None, line_search: bool = True) -> dict:
         if b_t < out["bound"]:
             out.update(bound=b_t, gap=g_t, line_search_t=t)
     return out
+
+
+def error_bound_with_dual(problem, r, lam) -> dict:
+    """Certified bound on |A^T (r - r*)| from a primal point r (in the cones) and any dual point ``lam`` (n,)
+    (diagonal D only): G = 1/2 |y - l|^2 + sum_i phi_i / (4 gamma) with c = A l + b, then
+    |y - y*| <= (delta + sqrt(4 G - delta^2)) / 2, delta = |y - l|.  For a dual method's iterate q
+    (q = D H^T r in the dof-space dual), l = D^-1/2 q and r = P_K(-(A l + b)) / (2 gamma)."""
+    if not problem.gamma > 0 or not problem.is_diagonal:
+        return {"gap": math.inf, "bound": math.inf}
+    r = np.asarray(r, dtype=np.float64).reshape(-1)
+    lam = np.asarray(lam, dtype=np.float64).reshape(-1)
+    sqrt_d = np.sqrt(problem.D_data)
+    y = sqrt_d * (problem.H.T @ r)
+    m = problem.n_contacts
+    c = (problem.H @ (sqrt_d * lam) + problem.b).reshape(m, 3)
+    phi = np.empty(m)
+    gap_terms(np.ascontiguousarray(r.reshape(m, 3)), np.ascontiguousarray(c), np.ascontiguousarray(problem.mu),
+              2.0 * problem.gamma, phi)
+    delta = float(np.linalg.norm(y - lam))
+    gap = 0.5 * delta * delta + float(phi.sum()) / (4.0 * problem.gamma)
+    return {"gap": gap, "bound": 0.5 * (delta + math.sqrt(max(4.0 * gap - delta * delta, 0.0)))}
