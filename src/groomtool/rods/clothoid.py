@@ -67,6 +67,7 @@ blocks D l_i / 6, block tridiagonal, symmetric positive definite when every l > 
 
 from __future__ import annotations
 
+import sys
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -1013,7 +1014,7 @@ def fit_polyline_ls(polyline, n_elements: int, model: str = "clothoid", iteratio
     # projected (L2, on a dense grid) onto the model's space (piecewise constant / continuous piecewise
     # linear on N equal elements); the one with the lower starting cost is refined
     if model == "clothoid":
-        mod = __import__(__name__, fromlist=["x"])
+        mod = sys.modules[__name__]
         make = lambda q, R, lam: SuperClothoid(X[0], R, np.full((1, N), lam * L / N), q[None])
     elif model == "helix":
         mod = sh
