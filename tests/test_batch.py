@@ -152,6 +152,18 @@ def test_solver_failure_is_reported_with_exit_code_2(client, data, tmp_path):
         assert "FeasibleSolveWarning" in row["warnings"]
 
 
+def test_scheduler_address(client, data, tmp_path):
+    """--scheduler ADDRESS: the batch connects to a running scheduler (here the shared local one)."""
+    out = tmp_path / "out"
+    address = client.scheduler.address
+    assert main(["batch", str(data / "g2.obj"), "--head", str(data / "head.obj"), "--contacts", "head",
+                 "--contact-radius", "5e-4", "-o", str(out), "--scheduler", address, "-q"]) == 0
+    summary = json.loads((out / "batch_summary.json").read_text())
+    assert summary["workers"] == f"scheduler {address}"
+    assert summary["grooms"][0]["worker"] in client.scheduler_info()["workers"]
+    assert (out / "g2" / "report.json").is_file()
+
+
 def test_a_writer_that_fails_leaves_no_partial_output(data, tmp_path, monkeypatch):
     """In process (the task function itself): the project's writer stages the set, so a failure while
     writing is reported in the row and leaves neither OUTDIR/<stem> nor a staging directory."""
