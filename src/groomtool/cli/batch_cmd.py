@@ -83,6 +83,9 @@ def cmd_batch(args) -> int:
                         retries=args.retries, resume=args.resume, quiet=args.quiet)
     if not args.quiet:
         print_summary(summary)
+    from . import main as cli
+
+    wording = getattr(cli, "cli_message", lambda message: message)  # library advice -> the CLI's flags
     for r in summary.failed():
-        print(f"groom batch: {r['name']}: {r['status']}: {r['error']}", file=sys.stderr)
+        print(f"groom batch: {r['name']}: {r['status']}: {wording(r['error'] or '')}", file=sys.stderr)
     return summary.exit_code
