@@ -9,7 +9,12 @@
    the inversion's forces as groom check does) and sagging (naive).  The example strands lie 0.24 mm
    above the head (a fibre radius plus 0.2 mm), so the contact radius is 0.3 mm for them to rest on it.
 
+3. Stage breakdown per step of the README example's ``groom check`` runs (``--example-dir``: the output
+   directory of ``groom example example && groom invert example/example.obj --head example/head.obj
+   --contacts all --contact-radius 5e-4 -o example/out``), steps after the first (kernels loaded).
+
     python bench/bench_simulate.py [--quick] [--strands 1000] [--steps 5] [--styles 00002 00014 ...]
+    python bench/bench_simulate.py --keep-styles --keep-big --example-dir example/out --example-steps 12
 
 Prints a table and writes bench/results/simulate.md and simulate.json.  BLAS is pinned to one thread
 (the per-strand systems are 30-200 dofs: threads only add contention).
@@ -145,7 +150,66 @@ def time_big_groom(n_strands: int, steps: int) -> dict:
     return out
 
 
-def markdown(rows, big, meta) -> str:
+def example_stages(outdir, steps: int, skin=None, cpu_time: bool = True) -> dict:
+    """Per-step stages of groom check's two runs on an inversion output directory (steps after the first).
+    ``cpu_time``: every timer (the simulator's stages included) reads the process CPU time instead of
+    the wall clock (the machine is shared; BLAS and numba run on one thread here)."""
+    if cpu_time:
+        time.perf_counter = time.process_time
+    from groomtool.check import load_inverted
+    from groomtool.simulate import SimulationParams, Simulator
+
+    inv = load_inverted(outdir)
+    out = {"dir": str(outdir), "strands": int(inv.helix.n_strands), "elements": int(inv.helix.n_elements.sum()),
+           "steps": steps}
+    for name, q0 in (("inverted", inv.rest_curvatures), ("naive", inv.helix.curvatures.copy())):
+        params = SimulationParams(contacts=inv.contacts, contact_radius=inv.contact_radius, detection_skin=skin)
+        t = time.perf_counter()
+        sim = Simulator(inv.helix, q0, inv.material, inv.gravity, head=inv.head, params=params,
+                        stiffness=inv.stiffness() if name == "inverted" else None,
+                        warm_start=inv.contact_forces if name == "inverted" else None)
+        setup = time.perf_counter() - t
+        t = time.perf_counter()
+        sim.step()
+        first = time.perf_counter() - t
+        sim.timings.clear()
+        per, sweeps, contacts = [], [], []
+        tips0 = sim.tips()
+        for _ in range(steps):
+            t = time.perf_counter()
+            system = sim.step()
+            per.append(time.perf_counter() - t)
+            sweeps.append(int(system.stats.get("solver_iterations", 0)))
+            contacts.append(int(system.stats.get("contacts", 0)))
+        out[name] = {"setup_s": setup, "first_step_s": first, "s_per_step_mean": float(np.mean(per)),
+                     "s_per_step_median": float(np.median(per)), "sweeps": sweeps, "contacts_mean": float(np.mean(contacts)),
+                     "stages_s_per_step": {k: v / steps for k, v in sim.timings.items()},
+                     "detection_passes": sim.tracker.passes if sim.tracker else 0,
+                     "max_tip_drift_m": float(np.linalg.norm(sim.tips() - tips0, axis=1).max())}
+    return out
+
+
+def example_markdown(example, before=None) -> list[str]:
+    lines = ["", "## The README example: stages per step of groom check's runs", "",
+             f"{example['strands']} strands, {example['elements']} elements, contact radius 0.5 mm, all contacts; "
+             f"{example['steps']} steps after the first per run (the first loads the kernels); OpenBLAS one thread; "
+             "**CPU time** (process_time: the machine was shared, load average 13-20 on 2 cores during these runs; "
+             "wall-clock times were 2-4x larger and noisy). 'before' is the code before issue 15's work (commit "
+             "695eb2a), 'after' this one, measured one after the other.", "",
+             "| code | run | s/step mean (median) | contacts | GS sweeps per step | stages (s/step) |", "|---|---|---|---|---|---|"]
+    for label, ex in (("before", before), ("after", example)):
+        if not ex:
+            continue
+        for name in ("inverted", "naive"):
+            b = ex[name]
+            stages = ", ".join(f"{k} {v:.3f}" for k, v in sorted(b["stages_s_per_step"].items(), key=lambda kv: -kv[1]))
+            sw = b["sweeps"]
+            lines.append(f"| {label} | {name} | {b['s_per_step_mean']:.3f} ({b['s_per_step_median']:.3f}) | "
+                         f"{b['contacts_mean']:.0f} | {min(sw)}-{max(sw)} | {stages} |")
+    return lines
+
+
+def markdown(rows, big, meta, example=None, before=None) -> str:
     lines = ["# groom check and forward simulation: benchmark", "",
              f"{meta['date']} on {meta['machine']} ({meta['cpus']} CPUs), Python {meta['python']}; "
              f"{meta['seconds']:g} s simulated at dt = 1/{round(1 / meta['dt'])} s; material: E = 3 GPa, r = 40 um, "
@@ -175,6 +239,8 @@ def markdown(rows, big, meta) -> str:
             lines.append(f"| {name} | {b['s_per_step_mean']:.2f} | {b['s_per_step_first']:.2f} / {b['s_per_step_last']:.2f} | "
                          f"{b['contacts_mean']:.0f} | {b['solver_iterations_mean']:.0f} | "
                          f"{b['modified_step_matrices_per_step']:.0f} | {stages} |")
+    if example:
+        lines += example_markdown(example, before)
     return "\n".join(lines) + "\n"
 
 
@@ -189,6 +255,11 @@ def main(argv=None) -> int:
     ap.add_argument("--no-long", action="store_true", help="skip the long styles with isolation-unstable strands")
     ap.add_argument("--no-styles", action="store_true", help="only the timing of the large groom")
     ap.add_argument("--keep-styles", action="store_true", help="reuse the style rows of simulate.json")
+    ap.add_argument("--keep-big", action="store_true", help="reuse the large-groom timing of simulate.json")
+    ap.add_argument("--example-dir", default=None, help="an inversion of the README example: stage breakdown")
+    ap.add_argument("--example-steps", type=int, default=12)
+    ap.add_argument("--example-before", default=None,
+                    help="a JSON of example_stages measured on the previous code, shown as 'before'")
     args = ap.parse_args(argv)
     warnings.simplefilter("ignore")
     if not DATA.is_dir():
@@ -211,9 +282,15 @@ def main(argv=None) -> int:
               f"{row['naive_max_tip_drift_m']:.2e} m  ratio {row['drift_ratio']:.1e}  curv {row['inverted_curvature_change']:.1e}"
               f"  unstable {row['unstable_in_isolation']}  {'ok' if all(c.values()) else 'FAIL'}  ({time.perf_counter() - t:.0f} s)",
               flush=True)
+    previous = json.loads((RESULTS / "simulate.json").read_text()) if (RESULTS / "simulate.json").is_file() else {}
     n_big = 100 if args.quick else args.strands
-    big = time_big_groom(n_big, args.steps) if n_big else None
-    if big:
+    if args.keep_big:
+        big = previous.get("big")
+    else:
+        big = time_big_groom(n_big, args.steps) if n_big else None
+    example = example_stages(args.example_dir, args.example_steps) if args.example_dir else previous.get("example")
+    before = json.loads(Path(args.example_before).read_text()) if args.example_before else previous.get("example_before")
+    if big and not args.keep_big:
         for name in ("inverted", "naive"):
             print(f"{big['groom']} {name}: {big[name]['s_per_step_mean']:.2f} s/step, {big[name]['contacts_mean']:.0f} contacts",
                   flush=True)
@@ -226,9 +303,10 @@ def main(argv=None) -> int:
                "max_inverted_drift_m": max((r["inverted_max_tip_drift_m"] for r in stable), default=0.0),
                "max_drift_ratio": max((r["drift_ratio"] for r in stable), default=0.0),
                "max_curly_curvature_change": max((r["inverted_curvature_change"] for r in stable if r["curly"]), default=0.0)}
-    (RESULTS / "simulate.json").write_text(json.dumps({"meta": meta, "summary": summary, "styles": rows, "big": big},
+    (RESULTS / "simulate.json").write_text(json.dumps({"meta": meta, "summary": summary, "styles": rows, "big": big,
+                                                       "example": example, "example_before": before},
                                                       indent=2, default=float) + "\n")
-    (RESULTS / "simulate.md").write_text(markdown(rows, big, meta))
+    (RESULTS / "simulate.md").write_text(markdown(rows, big, meta, example, before))
     print(json.dumps(summary, indent=2))
     return 0
 

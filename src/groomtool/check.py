@@ -20,8 +20,9 @@ the scalar material: it is what the user's groom does without inversion.
 Subset (``strands=n``): n strands drawn at random (numpy default_rng(seed), without replacement)
 plus every strand sharing a contact with one of them (one level: the partners' own partners are
 left out), from the inversion's contacts, else from a detection on the groomed shape.  Both runs
-simulate that set; drift and curvature figures are over the n drawn strands only (the partners
-support them but miss some of their own supports).
+simulate that set; drift and curvature figures are over the n drawn strands only.  In the inverted
+run the partners' contacts with strands left out act as constant forces, the inversion's (the set
+starts in equilibrium; they do not follow the motion); the naive run has no such forces.
 """
 
 from __future__ import annotations
@@ -55,6 +56,7 @@ class InvertedGroom:
     contact_forces: tuple | None = None  # (contacts record, forces (m, 3) N) of the inversion
     strand_stiffness: np.ndarray | None = None  # (S, 3) per unit length (GJ_s, EI_s, EI_s), per-strand materials
     stiffness_factor: np.ndarray | None = None  # (S,) as written by the inversion, if any
+    boundary_force: np.ndarray | None = None  # (S, N, 3) of a subset: the inversion's forces of the strands left out
 
     def per_strand(self) -> bool:
         """True when some strand's stiffness differs from the scalar material's."""
@@ -90,7 +92,21 @@ class InvertedGroom:
         def pick(x):
             return None if x is None else np.asarray(x)[idx]
 
+        boundary = None
+        if self.contact_forces is not None and getattr(self.contact_forces[0], "frame", None) is not None:
+            from .contact.jacobian import generalized_contact_force
+
+            record, f = self.contact_forces
+            a, b = np.asarray(record.strand_a), np.asarray(record.strand_b)
+            inside = np.zeros(h.n_strands, dtype=bool)
+            inside[idx] = True
+            cut = (b >= 0) & (inside[a] != inside[np.maximum(b, 0)])
+            if np.any(cut):
+                part = SimpleNamespace(strand_a=a[cut], s_a=np.asarray(record.s_a)[cut], strand_b=b[cut],
+                                       s_b=np.asarray(record.s_b)[cut], frame=record.frame[cut])
+                boundary = generalized_contact_force(h, part, f[cut])[idx]
         return replace(self, helix=helix, rest_curvatures=self.rest_curvatures[idx], contact_forces=forces,
+                       boundary_force=boundary,
                        stiffness_ratio=pick(self.stiffness_ratio), strand_stiffness=pick(self.strand_stiffness),
                        stiffness_factor=pick(self.stiffness_factor))
 
@@ -131,7 +147,9 @@ def load_inverted(outdir) -> InvertedGroom:
     forces = None
     if len(arrays.get("contact_forces", ())):
         record = SimpleNamespace(strand_a=np.asarray(arrays["contact_strand_a"]), s_a=np.asarray(arrays["contact_s_a"]),
-                                 strand_b=np.asarray(arrays["contact_strand_b"]), s_b=np.asarray(arrays["contact_s_b"]))
+                                 strand_b=np.asarray(arrays["contact_strand_b"]), s_b=np.asarray(arrays["contact_s_b"]),
+                                 frame=np.asarray(arrays["contact_frames"], dtype=np.float64).reshape(-1, 3, 3)
+                                 if "contact_frames" in arrays else None)
         forces = (record, np.asarray(arrays["contact_forces"], dtype=np.float64).reshape(-1, 3))
     return InvertedGroom(helix=helix, rest_curvatures=rest, material=material, gravity=gravity, head=head,
                          contacts=contacts, contact_radius=radius, source=str(arrays.get("source", outdir)),
@@ -289,7 +307,8 @@ def check_groom(outdir, seconds: float = 1.0, dt: float | None = None, contacts:
                                       ("naive", inv.helix.curvatures.copy(), None)):
             result = simulate(inv.helix, rest, inv.material, inv.gravity, head=inv.head, seconds=seconds,
                               frames_per_second=1.0, params=base, progress=bar, stiffness=stiffness,
-                              warm_start=inv.contact_forces if name == "inverted" else None)
+                              warm_start=inv.contact_forces if name == "inverted" else None,
+                              external_force=inv.boundary_force if name == "inverted" else None)
             report[name] = run_summary(result, inv.helix, inv.stiffness_ratio, chosen)
             if report["contact_radius_m"] is None:
                 report["contact_radius_m"] = result.stats["contact_radius"]

@@ -39,7 +39,7 @@ one-call API).
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, field, replace
 from typing import Callable
 
 import numpy as np
@@ -171,7 +171,8 @@ class Simulator:
     stiffness: K (S, N, 3) instead of the material's (e.g. per-strand materials); warm_start: (contacts,
     forces (m, 3) in N) known at the start, e.g. the inversion's: the first contact solve starts from
     r = h * forces on the contacts that match (an inverted groom's first step is then solved before
-    any sweep).
+    any sweep).  external_force: a constant generalized force (S, N, 3) added to F (groom check's
+    subsets: the inversion's forces of the strands left out).
 
     Jobs: head and root motion (simulate_motion.HeadMotion), contacts kept, detected and warm-started
     (simulate_contacts.ContactTracker), per-strand linear algebra (simulate_linalg); this class holds
@@ -180,7 +181,7 @@ class Simulator:
 
     def __init__(self, helix: sh.SuperHelix, rest_curvatures, material: Material, gravity, head=None,
                  params: SimulationParams | None = None, head_motion: Callable | None = None,
-                 initial_rates=None, stiffness=None, warm_start=None):
+                 initial_rates=None, stiffness=None, warm_start=None, external_force=None):
         self.params = params or SimulationParams()
         self.material = material
         self.gravity = np.asarray(gravity, dtype=np.float64)
@@ -198,6 +199,8 @@ class Simulator:
             if self.K.shape != helix.curvatures.shape:
                 raise ValueError(f"stiffness must have shape {helix.curvatures.shape} (S, N, 3), got {self.K.shape}")
         self.mask = helix.element_mask
+        self.external = None if external_force is None else np.asarray(external_force, dtype=np.float64).reshape(
+            helix.curvatures.shape)
         rates = np.zeros_like(helix.curvatures) if initial_rates is None else np.asarray(initial_rates, float)
         self.state = State(0.0, helix.curvatures.copy(), rates * self.mask[..., None])
         self.friction = material.friction if self.params.friction is None else self.params.friction
@@ -267,6 +270,8 @@ class Simulator:
         pad = ~np.repeat(self.mask, 3, axis=1)
         Mhat[:, diag, diag] += pad
         force = F - self.K * (st.curvatures - self.rest) - A
+        if self.external is not None:
+            force = force + self.external
         rhs = np.einsum("sij,sj->si", M, st.rates.reshape(S, n)) + h * force.reshape(S, n)
         rhs[pad] = 0.0
         t0 = self._time("assembly", t0)
@@ -432,10 +437,10 @@ def simulate(helix: sh.SuperHelix, rest_curvatures, material: Material, gravity,
              frames_per_second: float | None = 24.0, samples_per_frame_element: int = 4,
              callback: Callable | None = None, progress=False,
              params: SimulationParams | None = None, head_motion: Callable | None = None,
-             warm_start=None, stiffness=None) -> SimulationResult:
+             warm_start=None, stiffness=None, external_force=None) -> SimulationResult:
     """Simulate ``seconds`` of motion; frames of the sampled strands at ``frames_per_second`` (None: every
-    step).  ``callback(simulator, system)`` is called after every step; ``warm_start`` and ``stiffness``
-    as for Simulator.  ``params`` carries the options; ``dt`` and ``contacts``, when given, override
+    step).  ``callback(simulator, system)`` is called after every step; ``warm_start``, ``stiffness`` and
+    ``external_force`` as for Simulator.  ``params`` carries the options; ``dt`` and ``contacts``, when given, override
     its fields on a copy (the caller's params are never modified).  ``progress``: False, True (a bar)
     or a simulate_progress.StepProgress to report to.  Returns a SimulationResult."""
     from .simulate_progress import StepProgress
@@ -447,7 +452,7 @@ def simulate(helix: sh.SuperHelix, rest_curvatures, material: Material, gravity,
     dt = params.dt
     t_start = time.perf_counter()
     sim = Simulator(helix, rest_curvatures, material, gravity, head=head, params=params, head_motion=head_motion,
-                    warm_start=warm_start, stiffness=stiffness)
+                    warm_start=warm_start, stiffness=stiffness, external_force=external_force)
     setup = time.perf_counter() - t_start
     steps = int(round(seconds / dt))
     every = 1 if not frames_per_second else max(1, int(round(1.0 / (frames_per_second * dt))))

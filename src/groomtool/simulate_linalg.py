@@ -22,13 +22,22 @@ def _cholesky(a: np.ndarray) -> np.ndarray | None:
 
 def modified_step_matrix(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Mhat = A V diag(d) V^T A with B V = A V Lambda, V^T A V = I, d = 1 + lambda (lambda >= 0),
-    d = 1 + |lambda| / 2 (lambda < 0): stable modes implicit, unstable ones grow at most threefold."""
-    import scipy.linalg
+    d = 1 + |lambda| / 2 (lambda < 0): stable modes implicit, unstable ones grow at most threefold.
 
-    lam, V = scipy.linalg.eigh(b, a)
-    d = np.where(lam >= 0.0, 1.0 + lam, 1.0 + 0.5 * np.abs(lam))
-    AV = a @ V
-    m = (AV * d) @ AV.T
+    Through A = L L^T and the standard eigenproblem C = L^-1 B L^-T = U Lambda U^T (A V = L U):
+    Mhat = A + B + P diag(1.5 |lambda_i|) P^T over the negative lambda_i, P = L U_neg."""
+    from scipy.linalg import solve_triangular
+
+    L = _cholesky(a)
+    if L is None:
+        raise np.linalg.LinAlgError("the step matrix's A = M + h^2 K is not positive definite")
+    X = solve_triangular(L, b, lower=True, check_finite=False)  # L^-1 B
+    C = solve_triangular(L, X.T, lower=True, check_finite=False)  # L^-1 B L^-T (B symmetric)
+    C = 0.5 * (C + C.T)
+    lam, U = np.linalg.eigh(C)
+    neg = lam < 0.0
+    P = L @ U[:, neg]
+    m = a + b + (P * (1.5 * np.abs(lam[neg]))) @ P.T
     return 0.5 * (m + m.T)
 
 
@@ -116,12 +125,14 @@ def cho_solve(L: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def cho_inverse(L: np.ndarray, n: int) -> np.ndarray:
-    """(L L^T)^-1 restricted to the first n dofs (a strand's real elements), LAPACK dpotri."""
-    inv, info = lapack.dpotri(np.asarray(L[:n, :n]), lower=1)
+    """(L L^T)^-1 restricted to the first n dofs (a strand's real elements), LAPACK dpotri.
+    L: lower triangular with zeros above the diagonal (as factor_step_matrix returns it)."""
+    inv, info = lapack.dpotri(L[:n, :n], lower=1)
     if info != 0:
         raise np.linalg.LinAlgError(f"dpotri failed (info {info})")
-    low = np.tril(inv)
-    return low + np.tril(low, -1).T
+    out = inv + inv.T  # dpotri wrote the lower triangle; the upper one is L's zeros
+    out.flat[:: n + 1] *= 0.5
+    return out
 
 
 @njit(cache=True)

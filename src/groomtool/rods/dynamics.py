@@ -36,6 +36,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
 from .series import c_table
 from .superhelix import E0, Kinematics, SuperHelix, _psi_apply_jacobian, kinematics, skew
@@ -164,18 +165,33 @@ def mass_matrix(helix: SuperHelix, inertia: Inertia, kin: Kinematics | None = No
     right = np.concatenate([down_top + rhoS * E, down_bottom + rhoS * G + Gr], axis=-2)  # (S, N, 6, 3)
     right_down = np.concatenate([down_top, down_bottom], axis=-2)
 
-    # right as (S, 6, 3N): column block k is right_k
-    full = left.reshape(S, 3 * N, 6) @ right.transpose(0, 2, 1, 3).reshape(S, 6, 3 * N)
-    blk = np.arange(3 * N) // 3
-    upper = (blk[:, None] < blk[None, :]).astype(np.float64)
-    M = full * upper
-    M = M + np.swapaxes(M, -1, -2)
-    diag = left @ right_down + own  # (S, N, 3, 3)
-    idx = np.arange(N)
-    Mb = M.reshape(S, N, 3, N, 3)
-    Mb[:, idx, :, idx, :] = diag.transpose(1, 0, 2, 3)
-    mask = np.repeat(helix.element_mask, 3, axis=1)
-    return M * (mask[:, :, None] & mask[:, None, :])
+    M = np.zeros((S, 3 * N, 3 * N))
+    _assemble_blocks(np.ascontiguousarray(left), np.ascontiguousarray(right), np.ascontiguousarray(right_down),
+                     np.ascontiguousarray(own), np.asarray(helix.n_elements, dtype=np.int64), M)
+    return M
+
+
+@njit(cache=True)
+def _assemble_blocks(left, right, right_down, own, n_elements, M):
+    """M_jk = left_j right_k (j < k), M_kj = M_jk^T, M_kk = left_k right_down_k + own_k, over each
+    strand's real elements only (padding stays 0)."""
+    for s in range(left.shape[0]):
+        n = n_elements[s]
+        for j in range(n):
+            for k in range(j, n):
+                for a in range(3):
+                    for b in range(3):
+                        acc = 0.0
+                        if k == j:
+                            for c in range(6):
+                                acc += left[s, j, a, c] * right_down[s, k, c, b]
+                            acc += own[s, k, a, b]
+                            M[s, 3 * j + a, 3 * k + b] = acc
+                        else:
+                            for c in range(6):
+                                acc += left[s, j, a, c] * right[s, k, c, b]
+                            M[s, 3 * j + a, 3 * k + b] = acc
+                            M[s, 3 * k + b, 3 * j + a] = acc
 
 
 # --------------------------------------------------------------------------- motion and velocity terms
