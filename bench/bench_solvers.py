@@ -152,10 +152,20 @@ def run_shared_child(spec: dict) -> dict:
     W, b, mu = read_bogus_problem(shared_problem_path(spec["m"], spec.get("pairing", "random"), spec.get("gamma", 0.01),
                                                       spec.get("seed", 0)))
     opts = dict(spec.get("options", {}))
+    if spec.get("stop") == "bogus":  # like for like: stop on so-bogus's own error (the caller's stop rule)
+        import inspect
+
+        from groomtool.solvers.gauss_seidel import run_gauss_seidel
+
+        if "stop" not in inspect.signature(run_gauss_seidel).parameters:
+            return {"spec": spec, "status": "error", "stderr": "this groomtool has no stop rule"}
+        trace_ = np.asarray(sp.csr_matrix(W).diagonal()).reshape(-1, 3).sum(axis=1)
+        bogus_tol = float(spec.get("bogus_tol", BOGUS_SHARED_30K["error"]))
+        opts["stop"] = lambda r, u: _res.bogus_error(r.reshape(-1, 3), u.reshape(-1, 3), mu, trace_) <= bogus_tol
     if spec.get("order") == "reversed":
         opts["order"] = np.arange(b.size // 3)[::-1].copy()
     # warm the numba caches on a small principal block so compilation never counts
-    solve_socqp(W[:600, :600], b[:600], mu[:200], max_iter=30, **{k: v for k, v in opts.items() if k != "order"})
+    solve_socqp(W[:600, :600], b[:600], mu[:200], max_iter=30, **{k: v for k, v in opts.items() if k not in ("order", "stop")})
     c0 = time.process_time()
     w0 = time.perf_counter()
     res = solve_socqp(W, b, mu, tol=spec.get("tol", 1e-8), max_iter=spec.get("max_iter"), **opts)
@@ -235,6 +245,8 @@ def main():
                     help="only re-measure the 30k target row N times and merge it into solvers.json")
     ap.add_argument("--shared", action="store_true",
                     help="only the shared generator's rows (issue 22): run them and merge them into solvers.json")
+    ap.add_argument("--shared-only", type=str, default=None, metavar="K,K",
+                    help="--shared: re-run only these SHARED_EXPERIMENTS (indices) at 30k and merge them")
     ap.add_argument("--repeat", type=int, default=3, help="--shared: processes per headline row (median reported)")
     ap.add_argument("--add", action="append", default=[], metavar="SPEC",
                     help="run one more spec (JSON) and append it to solvers.json")
@@ -360,6 +372,7 @@ SHARED_EXPERIMENTS = [  # 30k, random pairing, gamma 0.01: what was tried for th
     ({"options": {"symmetric": 1e-5}}, "symmetric once the residual is <= 1e-5"),
     ({"options": {"omega": 1.3}}, "over-relaxation omega 1.3"),
     ({"order": "reversed"}, "reverse order (tip to root within a strand)"),
+    ({"stop": "bogus"}, "stopped on so-bogus's own error <= 8.8e-9 (like for like)"),
     ({"tol": 1e-6}, "tolerance 1e-6"),
     ({"tol": 1e-4}, "tolerance 1e-4"),
 ]
@@ -392,6 +405,18 @@ def run_shared(args):
         print(shared_row(r), flush=True)
 
     print(SHARED_HEADER)
+    if args.shared_only:
+        path = RESULTS / "solvers.json"
+        data = json.loads(path.read_text())
+        for k in (int(x) for x in args.shared_only.split(",")):
+            extra, label = SHARED_EXPERIMENTS[k]
+            data["shared"]["runs"] = [r for r in data["shared"]["runs"] if r.get("label") != label]
+            go(dict(base, m=30000, pairing="random", **extra), label, repeat=args.repeat)
+        data["shared"]["runs"] += rows
+        data["shared"]["load_at_end"] = os.getloadavg()
+        path.write_text(json.dumps(data, indent=1))
+        write_markdown(data["meta"], data["runs"], data.get("clarabel", []), data.get("target"), data["shared"])
+        return
     for m in sizes:
         for pairing in ("random", "local"):
             spec = dict(base, m=m, pairing=pairing)
