@@ -15,8 +15,11 @@ Then the candidates are re-evaluated on the current samples as the detection bui
 (revisit: strand/strand closest points of the candidate's segment pair, so the normal stays
 orthogonal to both axes; head contacts at their arc length, the surface queried; e_T1 keeps its
 previous direction) and filtered by the current thresholds instead of a new detection pass.  Head
-contacts keep the pass's arc lengths: they slide by at most delta / 2 before the next pass.  Otherwise a new pass runs.  delta = 0 detects every step (the previous
-behaviour); at rest (an inverted groom) one pass serves the whole run.
+contacts keep the pass's arc lengths: they slide by at most delta / 2 before the next pass.
+Otherwise a new pass runs, with the skin unless the samples moved by more than delta / 2 since the
+last pass (fast motion: the next step could not keep it either; same contacts, a cheaper pass).
+delta = 0 detects every step (the previous behaviour); at rest (an inverted groom) one pass serves
+the whole run.
 """
 
 from __future__ import annotations
@@ -191,12 +194,13 @@ def revisit(pts: np.ndarray, offsets: np.ndarray, arc: np.ndarray, candidates, h
 
 @dataclass
 class DetectionCache:
-    """The last detection pass: its samples (V, 3) in the head's frame, the margins it used and its
-    candidates (in the head's frame)."""
+    """The last detection pass: its samples (V, 3) in the head's frame, the margins and skin it used and
+    its candidates (in the head's frame)."""
 
     samples: np.ndarray
     margins: tuple[float, float]
     candidates: object
+    skin: float = 0.0
 
 
 # --------------------------------------------------------------------------- the tracker
@@ -243,18 +247,18 @@ class ContactTracker:
             pts = (pts - T) @ R  # R^T (x - T): the head's rest frame
         return pts, offsets, arc, transform
 
-    def _pass(self, pts, offsets, arc, margins):
-        """Detection on the samples (head's frame) with the thresholds grown by the skin."""
+    def _pass(self, pts, offsets, arc, margins, skin: float):
+        """Detection on the samples (head's frame) with the thresholds grown by ``skin``."""
         from .contact import Contacts, detect_head_contacts, detect_strand_contacts
 
         r_s = self.radius + margins[1]
         r_h = self.radius + margins[0]
         parts = []
         if self.params.contacts == "all":
-            parts.append(detect_strand_contacts(pts, offsets, arc, r_s + 0.5 * self.skin, min_self_arc=np.pi * r_s,
+            parts.append(detect_strand_contacts(pts, offsets, arc, r_s + 0.5 * skin, min_self_arc=np.pi * r_s,
                                                 merge_arc=4.0 * r_s))
         if self.head_surface is not None:
-            parts.append(detect_head_contacts(pts, offsets, arc, self.head_surface, r_h + self.skin,
+            parts.append(detect_head_contacts(pts, offsets, arc, self.head_surface, r_h + skin,
                                               min_root_arc=np.pi * r_h, merge_arc=4.0 * r_h))
         for part in parts:
             part.radius = r_s
@@ -262,26 +266,36 @@ class ContactTracker:
         self.passes += 1
         return out
 
-    def _can_reuse(self, pts, margins) -> bool:
+    def _moved(self, pts) -> float | None:
+        """Largest displacement of a sample since the last pass (None: no pass to compare with)."""
         c = self.cache
-        if c is None or self.skin <= 0.0 or c.samples.shape != pts.shape:
+        if c is None or c.samples.shape != pts.shape:
+            return None
+        return float(np.sqrt(np.max(np.sum((pts - c.samples) ** 2, axis=1), initial=0.0)))
+
+    def _can_reuse(self, moved, margins) -> bool:
+        c = self.cache
+        if moved is None or c.skin <= 0.0:
             return False
-        moved = float(np.sqrt(np.max(np.sum((pts - c.samples) ** 2, axis=1), initial=0.0)))
         grow_h = max(0.0, margins[0] - c.margins[0])
         grow_s = max(0.0, margins[1] - c.margins[1])
-        return moved + grow_s <= 0.5 * self.skin and moved + grow_h <= self.skin
+        return moved + grow_s <= 0.5 * c.skin and moved + grow_h <= c.skin
 
     def detect(self, helix: sh.SuperHelix, kin, t: float, margins: tuple[float, float]):
         """Contacts within the thresholds at ``margins`` on the current geometry (world frame)."""
         from .contact import Contacts
 
         pts, offsets, arc, transform = self._samples(helix, kin, t)
-        if self._can_reuse(pts, margins):
+        moved = self._moved(pts)
+        if self._can_reuse(moved, margins):
             found = revisit(pts, offsets, arc, self.cache.candidates, self.head_surface)
             self.reused += 1
         else:
-            found = self._pass(pts, offsets, arc, margins)
-            self.cache = DetectionCache(pts, margins, found)
+            # strands that moved by more than half the skin since the last pass would not keep the
+            # next one either: detect without the skin (same contacts, a cheaper pass)
+            skin = self.skin if moved is None or moved <= 0.5 * self.skin else 0.0
+            found = self._pass(pts, offsets, arc, margins, skin)
+            self.cache = DetectionCache(pts, margins, found, skin)
         if transform is not None and len(found.strand_a):
             R, T = transform
             found = Contacts(found.strand_a, found.s_a, found.strand_b, found.s_b, found.point_a @ R.T + T,
