@@ -331,3 +331,13 @@ def test_check_stages_equal_their_original_implementations(draped):
     ref = _contact_held_unstable_reference(helix, MAT, g, res.contacts, res.forces, H, every)
     np.testing.assert_allclose(held, ref, rtol=1e-10, atol=1e-12)  # some are 0 up to round-off
     assert np.any(held < iso - 1e-6 * np.abs(iso))  # some strand is held by its contacts
+
+
+def test_progress_shows_the_certified_bound_and_sweeps_to_go(draped, sphere, capsys):
+    """The contact solve's progress bar shows the residual, the certified q0 bound with its target, and the
+    sweeps still needed at the bound's own rate."""
+    groom, _ = draped
+    invert_groom(groom, head=sphere, params=_params(solver="gs", q0_tolerance=1e-6, max_iterations=600),
+                 quiet=False)
+    err = capsys.readouterr().err
+    assert "q0 within" in err and "(target 1e-06" in err and "more sweeps at this rate" in err

@@ -690,6 +690,7 @@ def _solve(problem: InverseProblem, helix: sh.SuperHelix, params: InversionParam
     choose_solver; if its Gauss-Seidel does not converge on at most 10,000 contacts, clarabel takes over
     (report: fallback_from)."""
     from .solvers import solve_contact_problem
+    from .solvers.gauss_seidel import projected_sweeps
 
     cp = problem.contact_problem(helix)
     m = len(problem.mu)
@@ -699,23 +700,32 @@ def _solve(problem: InverseProblem, helix: sh.SuperHelix, params: InversionParam
     def run(method):
         with _progress(params.max_iterations, f"contact solve ({method}, {m:,} contacts)", quiet,
                        unit="sweep") as bar:
-            shown = {"residual": math.nan, "q0": math.nan}
+            shown = {"residual": math.nan, "q0": math.nan, "sweeps": 0, "history": []}
 
             def postfix():
                 text = f"residual {shown['residual']:.1e} (target {params.solver_tolerance:.0e})"
                 if math.isfinite(shown["q0"]):
                     text += f", q0 within {shown['q0']:.1e}"
                     if params.q0_tolerance is not None:
-                        text += f" (target {params.q0_tolerance:.0e})"
+                        text += f" (target {params.q0_tolerance:.0e}"
+                        # at the bound's own rate over the second half of the run (as give_up projects)
+                        need = projected_sweeps(shown["history"], params.q0_tolerance) if len(shown["history"]) > 2 \
+                            else math.nan
+                        if math.isfinite(need) and need > shown["sweeps"]:
+                            text += f", ~{need - shown['sweeps']:,.0f} more sweeps at this rate"
+                        text += ")"
                 bar.set_postfix_str(text)
 
             def show(sweeps, residual):
                 bar.update(max(0, min(sweeps, bar.total) - bar.n))
                 shown["residual"] = residual
+                shown["sweeps"] = sweeps
                 postfix()
 
             def stop(r, u):  # the certified rest-curvature error: shown, and a stopping rule with q0_tolerance
                 shown["q0"] = rest_curvature_error_bound(problem, cp, r, u, line_search=False)["q0_error_bound"]
+                if math.isfinite(shown["q0"]):
+                    shown["history"].append((shown["sweeps"], shown["q0"]))
                 postfix()
                 return params.q0_tolerance is not None and shown["q0"] <= params.q0_tolerance
 
