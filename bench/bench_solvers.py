@@ -247,6 +247,8 @@ def main():
                     help="only the shared generator's rows (issue 22): run them and merge them into solvers.json")
     ap.add_argument("--shared-only", type=str, default=None, metavar="K,K",
                     help="--shared: re-run only these SHARED_EXPERIMENTS (indices) at 30k and merge them")
+    ap.add_argument("--threads-check", type=int, default=0, metavar="N",
+                    help="--shared: N alternated pairs of one-thread / default-thread 30k runs (CPU and wall)")
     ap.add_argument("--repeat", type=int, default=3, help="--shared: processes per headline row (median reported)")
     ap.add_argument("--add", action="append", default=[], metavar="SPEC",
                     help="run one more spec (JSON) and append it to solvers.json")
@@ -405,6 +407,25 @@ def run_shared(args):
         print(shared_row(r), flush=True)
 
     print(SHARED_HEADER)
+    if args.threads_check:
+        # one-thread and default-thread runs of the 30k headline, alternated so that both see the same load
+        path = RESULTS / "solvers.json"
+        data = json.loads(path.read_text())
+        pairs = []
+        for k in range(args.threads_check):  # which goes first alternates too
+            if k % 2:
+                dft = child(dict(base, m=30000, pairing="random", threads="default"))
+                one = child(dict(base, m=30000, pairing="random"))
+            else:
+                one = child(dict(base, m=30000, pairing="random"))
+                dft = child(dict(base, m=30000, pairing="random", threads="default"))
+            pairs.append({k: {"cpu_s": t.get("cpu_s"), "wall_s": t.get("wall_s")} for k, t in (("one", one), ("default", dft))})
+            print(pairs[-1], flush=True)
+        data["shared"]["threads_check"] = {"date": time.strftime("%Y-%m-%d %H:%M"), "pairs": pairs,
+                                           "load_at_end": os.getloadavg()}
+        path.write_text(json.dumps(data, indent=1))
+        write_markdown(data["meta"], data["runs"], data.get("clarabel", []), data.get("target"), data["shared"])
+        return
     if args.shared_only:
         path = RESULTS / "solvers.json"
         data = json.loads(path.read_text())
@@ -477,6 +498,16 @@ def shared_markdown(shared):
     head = [r for r in rows if r["spec"]["m"] == 30000 and r["spec"].get("pairing") == "random" and r["label"] == "defaults"
             and r["spec"].get("threads") != "default"]
     big = [r for r in rows if r["spec"]["m"] == 100000 and r["spec"].get("pairing") == "random" and r["label"] == "defaults"]
+    tc = shared.get("threads_check")
+    if tc:
+        lines += ["", f"One thread against the default threads, 30k, alternated pairs of processes ({tc['date']}, load "
+                  f"average at the end {', '.join(f'{x:.1f}' for x in tc['load_at_end'])}):", "",
+                  "| pair | CPU s, 1 thread | wall s, 1 thread | CPU s, default | wall s, default | wall default / 1 thread |",
+                  "|---|---|---|---|---|---|"]
+        for k, pr in enumerate(tc["pairs"]):
+            o, d = pr["one"], pr["default"]
+            lines.append(f"| {k + 1} | {o['cpu_s']:.2f} | {o['wall_s']:.2f} | {d['cpu_s']:.2f} | {d['wall_s']:.2f} | "
+                         f"{d['wall_s'] / o['wall_s']:.2f} |")
     if head:
         h = head[0]
         lines += ["", f"30k CPU times of the {len(h['cpu_s_all'])} processes: "
