@@ -40,8 +40,10 @@ def data(tmp_path_factory) -> Path:
 @pytest.fixture(scope="module")
 def client():
     """The batch's own local cluster (2 processes, 1 thread each), shared by the tests of this module."""
+    saved = {k: os.environ.get(k) for k in batch.THREAD_ENV}
     with batch._local_cluster(2, "auto", 3) as cluster, distributed.Client(cluster) as c:
         yield c
+    batch._restore_environ(saved)  # the nanny wrote its pre-spawn environment into this process
 
 
 def inputs(data, names=NAMES):
@@ -67,7 +69,11 @@ def test_cli_corrupt_input_is_reported_and_the_batch_completes(data, tmp_path, c
     out = tmp_path / "out"
     argv = ["batch", *map(str, inputs(data)), str(data / "broken.obj"), "--head", str(data / "head.obj"),
             "--contacts", "head", "--contact-radius", "5e-4", "-o", str(out), "--workers", "2", "--quiet"]
+    before = {k: os.environ.get(k) for k in batch.THREAD_ENV}
     assert main(argv) == 1  # an input error
+    # the caller's environment is as it was (distributed's nanny sets NUMBA_NUM_THREADS=1 in the parent: left
+    # there, the next numba compilation in this process would fail)
+    assert {k: os.environ.get(k) for k in batch.THREAD_ENV} == before
     err = capsys.readouterr().err
     assert "broken: input_error" in err and str(data / "broken.obj") in err
     rows = read_csv(out)

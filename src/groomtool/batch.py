@@ -351,6 +351,15 @@ def _tidy(outdir: Path, names) -> None:
             pass
 
 
+def _restore_environ(saved: dict) -> None:
+    """Set back the environment variables ``saved`` ({name: value or None})."""
+    for key, value in saved.items():
+        if value is None:
+            os.environ.pop(key, None)
+        else:
+            os.environ[key] = value
+
+
 def _local_cluster(workers: int, memory_limit, retries: int):
     import logging
 
@@ -452,6 +461,10 @@ def _run_tasks(paths, todo, rows, outdir, head, params, load_options, formats, w
                 client = stack.enter_context(Client(scheduler))
                 where = f"scheduler {scheduler}"
             else:
+                # distributed's nanny writes its pre-spawn environment (NUMBA_NUM_THREADS=1, ...) into *this*
+                # process's os.environ at every worker (re)start; put ours back when the cluster is gone, or the
+                # caller's next numba compilation fails ("Cannot set NUMBA_NUM_THREADS ... once launched")
+                stack.callback(_restore_environ, {k: os.environ.get(k) for k in THREAD_ENV})
                 cluster = stack.enter_context(_local_cluster(workers, memory_limit, retries))
                 client = stack.enter_context(Client(cluster))
                 where = f"LocalCluster of {workers} worker processes, 1 thread each"
