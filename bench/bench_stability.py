@@ -89,7 +89,7 @@ def grown_groom(style: str, strands: int):
                               source=f"{strands} strands grown from cstrands{style} on roots10k")
 
 
-def run_style(style, cls, head, seconds, dt, minimal, grown=0) -> dict:
+def run_style(style, cls, head, seconds, dt, minimal, grown=0, cap=100.0) -> dict:
     from groomtool import load
     from groomtool.invert import InversionParams, invert_groom
 
@@ -98,7 +98,7 @@ def run_style(style, cls, head, seconds, dt, minimal, grown=0) -> dict:
     else:
         groom = load(DATA / "cstrands" / f"cstrands{style}.data", repair=True)  # a few styles repeat vertices
     t0 = time.process_time()
-    res = invert_groom(groom, head, InversionParams(contacts="all"))
+    res = invert_groom(groom, head, InversionParams(contacts="all", max_stiffness_factor=cap))
     t_inv = time.process_time() - t0
     stab = res.report["stability"]["stabilization"]
     row = {"style": style, "class": cls, "strands": int(res.helix.n_strands),
@@ -137,6 +137,10 @@ def main(argv=None) -> int:
     ap.add_argument("--minimal", type=int, default=0, help="check minimality on the first N stiffened styles")
     ap.add_argument("--grown", type=int, default=0, metavar="N",
                     help="instead of the guides, N strands grown from each style on usc/roots10k.obj")
+    ap.add_argument("--part", default=None, metavar="K/N", help="only every N-th style from the K-th (0-based): "
+                    "run N processes, then --merge")
+    ap.add_argument("--merge", nargs="*", default=None, metavar="JSON", help="merge parts' JSON into --out")
+    ap.add_argument("--cap", type=float, default=100.0, help="--max-stiffness-factor (default 100)")
     ap.add_argument("--out", default="stability")
     args = ap.parse_args(argv)
     if not DATA.is_dir():
@@ -151,16 +155,25 @@ def main(argv=None) -> int:
         styles = sorted(p.stem.replace("cstrands", "") for p in (DATA / "cstrands").glob("cstrands*.data"))
     else:
         styles = sorted(k for k, c in classes.items() if c.split("_")[0] in ("L", "XL", "XXL"))
+    if args.merge:
+        rows = [r for path in args.merge for r in json.loads(Path(path).read_text())["rows"]]
+        write_results(sorted(rows, key=lambda r: r["style"]), args)
+        return 0
+    if args.part:
+        k, n = (int(x) for x in args.part.split("/"))
+        styles = styles[k::n]
     head = load_head(DATA / "head_model.obj")
     rows, minimal_left = [], args.minimal
     header = (f"{'style':>6} {'class':>12} {'contacts':>8} {'alone':>5} {'stiff':>5} {'max f':>7} {'left':>4} "
               f"{'inv drift':>10} {'naive':>9} {'ratio':>8} {'0.9f drift':>10}")
     print(header)
     for style in styles:
-        row = run_style(style, classes.get(style, "?"), head, args.seconds, args.dt, minimal_left > 0, args.grown)
+        row = run_style(style, classes.get(style, "?"), head, args.seconds, args.dt, minimal_left > 0, args.grown,
+                        args.cap)
         if "below_factor_drift_m" in row:
             minimal_left -= 1
         rows.append(row)
+        write_results(rows, args, quiet=True)  # as it goes: a long run can be stopped and still counts
         print(f"{style:>6} {row['class']:>12} {row['contacts']:>8} {row['unstable_alone']:>5} {row['stiffened']:>5} "
               f"{row['max_factor']:>7.2f} {row['still_unstable']:>4} {row.get('inverted_drift_m', float('nan')):>10.2e} "
               f"{row.get('naive_drift_m', float('nan')):>9.2e} {row.get('ratio', float('nan')):>8.1e} "
@@ -169,18 +182,18 @@ def main(argv=None) -> int:
     return 0
 
 
-def write_results(rows, args) -> None:
+def write_results(rows, args, quiet=False) -> None:
     RESULTS.mkdir(parents=True, exist_ok=True)
     meta = {"date": time.strftime("%Y-%m-%d"), "machine": f"{platform.machine()} ({os.cpu_count()} CPUs)",
             "python": platform.python_version(), "seconds": args.seconds, "dt": args.dt,
-            "margin": 1.1, "cap": 100.0}
+            "margin": 1.1, "cap": args.cap}
     (RESULTS / f"{args.out}.json").write_text(json.dumps({"meta": meta, "rows": rows}, indent=1))
     checked = [r for r in rows if "inverted_drift_m" in r]
     stiffened = [r for r in rows if r["stiffened"]]
     factors = [f for r in rows for f in r["certified_factors"]]
     lines = [f"# Stable inversion: USC styles ({meta['date']}, {meta['machine']}, Python {meta['python']})", "",
              f"Inverted with `contacts=\"all\"` against the USC head and the default stabilisation (margin 1.1, "
-             f"cap 100). Proof: {args.seconds:g} s simulated at dt = 1/{1 / args.dt:.0f} s, inverted with the "
+             f"cap {args.cap:g}). Proof: {args.seconds:g} s simulated at dt = 1/{1 / args.dt:.0f} s, inverted with the "
              "per-strand moduli vs naive with the input material; criteria: inverted drift < 1 mm and < 2 % of "
              "the naive drift.", "",
              f"- styles: {len(rows)}; with stiffened strands: {len(stiffened)}; strands stiffened: "
@@ -211,7 +224,8 @@ def write_results(rows, args) -> None:
                      f"{r['equilibrium']:.1e} | {fmt('inverted_drift_m')} | {fmt('naive_drift_m')} | {fmt('ratio', '.1e')} | "
                      f"{fmt('kicked_drift_m')} | {fmt('below_factor_drift_m')} | {crit} |")
     (RESULTS / f"{args.out}.md").write_text("\n".join(lines) + "\n")
-    print("\n".join(lines[:9]))
+    if not quiet:
+        print("\n".join(lines[:9]))
 
 
 if __name__ == "__main__":

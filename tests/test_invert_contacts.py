@@ -47,7 +47,8 @@ def sphere():
 
 def _params(**kw):
     base = dict(material=MAT, tolerance=2e-4, contacts="all", contact_radius=5e-4, solver="clarabel",
-                solver_tolerance=1e-10, q0_tolerance=None, discrete_rest_data=False)
+                solver_tolerance=1e-10, q0_tolerance=None, discrete_rest_data=False,
+                stabilize="none")  # tests/test_stabilize.py
     base.update(kw)
     return InversionParams(**base)
 
@@ -82,7 +83,7 @@ def _independent_cvxpy(res, gamma_abs):
     helix, mat = res.helix, res.material
     kin = sh.kinematics(helix)
     H = contact_jacobian(helix, res.contacts, kin).toarray()
-    K = helix.to_flat(sh.stiffness(helix, mat.stiffness_diag)).ravel()
+    K = helix.to_flat(res.stiffness()).ravel()  # per-strand moduli after the stabilisation
     F = helix.to_flat(sh.gravity_force(helix, mat.linear_density, res.gravity, kin)).ravel()
     q = helix.to_flat(helix.curvatures).ravel()
     q0g = helix.to_flat(rest_curvature_guess(helix, res.params.guess)).ravel()
@@ -94,7 +95,8 @@ def _independent_cvxpy(res, gamma_abs):
     resid = q - F / K - q0g - A @ x
     scale = float(np.sum((F / K) ** 2))
     obj = 0.5 * cp.sum_squares(resid) / scale + gamma_abs * f * f * cp.sum_squares(x) / scale
-    cons = [cp.SOC(mat.friction * x[3 * i], x[3 * i + 1:3 * i + 3]) for i in range(m)]
+    mu = (1.0 - res.params.friction_margin) * mat.friction  # the cones the inversion keeps its forces in
+    cons = [cp.SOC(mu * x[3 * i], x[3 * i + 1:3 * i + 3]) for i in range(m)]
     prob = cp.Problem(cp.Minimize(obj), cons)
     prob.solve(solver=cp.CLARABEL, tol_gap_abs=1e-12, tol_gap_rel=1e-12, tol_feas=1e-12)
     return (x.value * f).reshape(m, 3), prob.value * scale
@@ -111,9 +113,9 @@ def test_optimum_matches_an_independent_cvxpy_formulation(draped, sphere, solver
 
 
 def _w_scale(res):
-    helix, mat = res.helix, res.material
+    helix = res.helix
     H = contact_jacobian(helix, res.contacts).toarray()
-    K = helix.to_flat(sh.stiffness(helix, mat.stiffness_diag)).ravel()
+    K = helix.to_flat(res.stiffness()).ravel()  # per-strand moduli after the stabilisation
     return float(np.mean(np.sum((H / K) ** 2, axis=1)))
 
 
@@ -121,7 +123,7 @@ def test_kkt_conditions(draped):
     _, res = draped
     helix, mat = res.helix, res.material
     H = contact_jacobian(helix, res.contacts).toarray()
-    K = helix.to_flat(sh.stiffness(helix, mat.stiffness_diag)).ravel()
+    K = helix.to_flat(res.stiffness()).ravel()  # per-strand moduli after the stabilisation
     F = helix.to_flat(sh.gravity_force(helix, mat.linear_density, res.gravity)).ravel()
     q = helix.to_flat(helix.curvatures).ravel()
     d = q - F / K - q  # guess "current"
@@ -131,7 +133,7 @@ def test_kkt_conditions(draped):
     r = res.forces.ravel()
     u = (W @ r + b).reshape(-1, 3)
     r = r.reshape(-1, 3)
-    mu = mat.friction
+    mu = (1.0 - res.params.friction_margin) * mat.friction
     scale_u = np.abs(b).max()
     scale_r = np.abs(r).max()
     assert np.all(np.linalg.norm(r[:, 1:], axis=1) <= mu * r[:, 0] + 1e-9 * scale_r)  # primal cone
@@ -145,7 +147,7 @@ def test_strand_touching_nothing_gets_the_isolated_rest_curvatures(sphere):
     groom = Groom.from_strands([near, far], source="far")
     res = invert_groom(groom, head=sphere, params=_params(contacts="head"))
     assert np.all(np.asarray(res.contacts.strand_a) == 0)  # only the draped strand touches
-    iso = isolated_rest_curvatures(res.helix, MAT, res.gravity)
+    iso = isolated_rest_curvatures(res.helix, MAT, res.gravity, stiffness_factor=res.stiffness_factor)
     assert np.allclose(res.rest_curvatures[1], iso[1], rtol=0, atol=1e-12 * np.abs(iso[1]).max())
     assert not np.allclose(res.rest_curvatures[0], iso[0])
 
@@ -154,28 +156,28 @@ def test_no_contact_mode_is_the_isolated_inversion(sphere):
     groom = Groom.from_strands([draped_strand(0.3, 2e-4)], source="one")
     res = invert_groom(groom, head=sphere, params=_params(contacts="none"))
     assert res.contacts is None and "contacts" not in res.report
-    assert np.allclose(res.rest_curvatures, isolated_rest_curvatures(res.helix, MAT, res.gravity))
+    assert np.allclose(res.rest_curvatures, isolated_rest_curvatures(res.helix, MAT, res.gravity,
+                                                                     stiffness_factor=res.stiffness_factor))
 
 
-def test_contact_held_ratios_skip_strands_without_active_contacts(sphere):
-    """Strands with no loaded contact keep their isolated ratio (passed in, not recomputed): the same
-    numbers as computing every strand's restricted Hessian."""
-    from groomtool.invert import contact_held_unstable
-    from groomtool.stability import stiffness_ratios
+def test_held_ratios_skip_strands_without_loaded_contacts(sphere):
+    """Strands with no loaded contact keep their isolated ratio (passed in, not recomputed)."""
+    from groomtool.stability import held_stiffness_ratios, stiffness_ratios
 
     strands = [draped_strand(0.3, 2e-4, azimuth=a) for a in (0.0, 0.7)]
     strands.append(draped_strand(0.3, 3e-3, azimuth=1.4))  # hovers 3 mm above: no contact
     groom = Groom.from_strands(strands, source="draped+free")
-    res = invert_groom(groom, head=sphere, params=_params())
+    res = invert_groom(groom, head=sphere, params=_params(stabilize="report"))
     loaded = set(np.asarray(res.contacts.strand_a)[res.forces[:, 0] > 0].tolist())
     assert 2 not in loaded and loaded  # a strand without loaded contacts, and some with
-    every = np.arange(groom.n_strands)
     isolated = stiffness_ratios(res.helix, MAT.stiffness_diag, MAT.linear_density, res.gravity)
     H = contact_jacobian(res.helix, res.contacts)
-    full = contact_held_unstable(res.helix, MAT, res.gravity, res.contacts, res.forces, H, every)
-    fast = contact_held_unstable(res.helix, MAT, res.gravity, res.contacts, res.forces, H, every, isolated)
-    np.testing.assert_allclose(fast, full, rtol=1e-9)
-    assert fast[2] == isolated[2]
+    mu = np.full(len(res.forces), MAT.friction)
+    held = held_stiffness_ratios(res.helix, MAT.stiffness_diag, MAT.linear_density, res.gravity, res.contacts,
+                                 res.forces, H, mu, isolated_ratios=isolated)
+    assert held.ratio[2] == isolated[2] and held.kind[2] == 0
+    assert all(held.kind[s] == 1 for s in loaded)
+    np.testing.assert_array_equal(res.held_ratio, held.ratio)
 
 
 def test_redundant_strand_fraction_counts_rows_against_dofs():
@@ -307,12 +309,7 @@ def test_failure_message_of_a_diverged_solve_has_no_tolerance_advice():
 def test_check_stages_equal_their_original_implementations(draped):
     """The equilibrium check, the isolated and the contact-held stiffness ratios against the original
     dense routes, on strands touching the sphere and each other."""
-    from groomtool.invert import (
-        _contact_held_unstable_reference,
-        _equilibrium_residuals_reference,
-        contact_held_unstable,
-        equilibrium_residuals,
-    )
+    from groomtool.invert import _equilibrium_residuals_reference, equilibrium_residuals
     from groomtool.stability import _stiffness_ratios_reference, stiffness_ratios
 
     _, res = draped
@@ -325,12 +322,11 @@ def test_check_stages_equal_their_original_implementations(draped):
     iso = stiffness_ratios(helix, MAT.stiffness_diag, MAT.linear_density, g)
     np.testing.assert_allclose(iso, _stiffness_ratios_reference(helix, MAT.stiffness_diag, MAT.linear_density, g,
                                                                 chunk=1), rtol=1e-10)
-    H = contact_jacobian(helix, res.contacts)
-    every = np.arange(helix.n_strands)
-    held = contact_held_unstable(helix, MAT, g, res.contacts, res.forces, H, every)
-    ref = _contact_held_unstable_reference(helix, MAT, g, res.contacts, res.forces, H, every)
-    np.testing.assert_allclose(held, ref, rtol=1e-10, atol=1e-12)  # some are 0 up to round-off
-    assert np.any(held < iso - 1e-6 * np.abs(iso))  # some strand is held by its contacts
+    from groomtool.stability import held_stiffness_ratios
+
+    held = held_stiffness_ratios(helix, MAT.stiffness_diag, MAT.linear_density, g, res.contacts, res.forces,
+                                 contact_jacobian(helix, res.contacts), MAT.friction, isolated_ratios=iso)
+    assert np.any(held.ratio < iso - 1e-6 * np.abs(iso))  # some strand is held by its contacts
 
 
 def test_progress_shows_the_certified_bound_and_sweeps_to_go(draped, sphere, capsys):

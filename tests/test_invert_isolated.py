@@ -7,7 +7,7 @@ from scipy.spatial.transform import Rotation
 from groomtool.invert import equilibrium_residuals, isolated_rest_curvatures, rest_curvature_guess
 from groomtool.material import Material
 from groomtool.rods import superhelix as sh
-from groomtool.stability import contact_held_ratio, stiffness_ratios
+from groomtool.stability import constrained_top_eigenvalue, stiffness_ratios
 
 MATERIAL = Material()
 G = np.array([0.0, -9.81, 0.0])
@@ -90,10 +90,14 @@ def test_hanging_strand_is_stable_and_ratio_scales_with_stiffness():
 def test_holding_the_tip_stabilises_a_long_upright_strand():
     """Beyond the Greenhill length the strand is unstable alone, stable once its tip is held."""
     helix = _upright_strand(1.5 * MATERIAL.greenhill_length(), 20)
-    alone = contact_held_ratio(helix, 0, MATERIAL.stiffness_diag, MATERIAL.linear_density, G, None)
+    dF = sh.gravity_force_jacobian(helix, MATERIAL.linear_density, G)[0]
+    scale = 1.0 / np.sqrt(sh.stiffness(helix, MATERIAL.stiffness_diag).reshape(-1))
+    A = scale[:, None] * dF * scale[None, :]
+    alone = constrained_top_eigenvalue(A, None)
+    assert alone == pytest.approx(stiffness_ratios(helix, MATERIAL.stiffness_diag, MATERIAL.linear_density, G)[0],
+                                  rel=1e-9)
     J, _ = sh.point_jacobians(helix, [0], [helix.strand_lengths[0]])
-    held = contact_held_ratio(helix, 0, MATERIAL.stiffness_diag, MATERIAL.linear_density, G,
-                              J[0].transpose(1, 0, 2).reshape(3, -1))
+    held = constrained_top_eigenvalue(A, J[0].transpose(1, 0, 2).reshape(3, -1) * scale[None, :])
     assert alone > 1.0 > held
 
 

@@ -16,9 +16,12 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
+import numpy as np
+
 from .groom import Groom
 from .invert import InversionParams, InversionResult, invert_groom
 from .material import Material
+from .rods import superhelix as sh
 
 MATERIAL_FIELDS = tuple(f.name for f in dataclasses.fields(Material))
 PARAM_FIELDS = tuple(f.name for f in dataclasses.fields(InversionParams) if f.name != "material")
@@ -120,16 +123,19 @@ def simulate(result, seconds: float = 1.0, **options):
     if isinstance(result, InversionResult):
         helix, rest, material, gravity, head = (result.helix, result.rest_curvatures, result.material,
                                                 result.gravity, result.head)
+        factor = result.stiffness_factor
     else:
-        helix, rest, material, gravity, head = _simulation_inputs(result)
+        helix, rest, material, gravity, head, factor = _simulation_inputs(result)
     options.setdefault("head", head)
+    if factor is not None and np.any(np.asarray(factor) != 1.0):  # stiffened strands (docs/stability.md)
+        K = sh.stiffness(helix, material.stiffness_diag) * np.asarray(factor)[:, None, None]
+        options.setdefault("stiffness", K)
     return _simulate(helix, rest, material, gravity, seconds=seconds, **options)
 
 
 def _simulation_inputs(source):
-    """(helix, rest curvatures (S, N, 3), material, gravity, head trimesh or None) of a saved result."""
-    import numpy as np
-
+    """(helix, rest curvatures (S, N, 3), material, gravity, head trimesh or None, per-strand stiffness factors
+    or None) of a saved result."""
     from .viz import fields
 
     arrays = fields.load_arrays(source)
@@ -142,4 +148,8 @@ def _simulation_inputs(source):
         import trimesh
 
         head = trimesh.Trimesh(mesh[0], mesh[1], process=False)
-    return fields.helix(arrays), fields.helix(arrays, rest=True).curvatures, material, gravity, head
+    factor = np.asarray(arrays["stiffness_factor"], dtype=np.float64) if "stiffness_factor" in arrays else None
+    helix = fields.helix(arrays)
+    if factor is not None and factor.shape != (helix.n_strands,):
+        factor = None
+    return helix, fields.helix(arrays, rest=True).curvatures, material, gravity, head, factor

@@ -24,6 +24,7 @@ from numba import njit
 from .groom import Groom
 from .material import Material
 from .rods import superhelix as sh
+from .stabilize import DEFAULT_CAP, DEFAULT_MARGIN, MAX_ROUNDS, STABILIZE_MODES, stabilization_report, stiffening_step
 
 GUESSES = ("current", "tip")
 CONTACT_MODES = ("none", "head", "all")
@@ -54,6 +55,7 @@ class InversionParams:
     relative_tolerance: float | None = None
     contacts: str = "none"  # none | head | all
     contact_radius: float | None = None
+    wisp_radius: float | None = None  # each strand stands for a wisp of this radius (guide strands): see wisp_report
     guess: str = "current"  # current | tip
     gamma: float = 1e-4
     solver: str = "auto"  # clarabel | gs | auto
@@ -66,6 +68,11 @@ class InversionParams:
     samples_per_element: int = 8
     rod_segments: int | None = None  # discrete rest data: None = the input's own vertices
     discrete_rest_data: bool = True
+    stabilize: str = "stiffness"  # none | stiffness | report (stabilize.py)
+    stability_margin: float = DEFAULT_MARGIN
+    max_stiffness_factor: float = DEFAULT_CAP
+    stiffness_factor: np.ndarray | None = None  # (S,) initial per-strand factors on E and G (None: all 1)
+    friction_margin: float = 0.1  # the forces solved lie in the cones of (1 - margin) mu: they stick, with a margin
 
     def __post_init__(self):
         if self.contacts not in CONTACT_MODES:
@@ -84,12 +91,36 @@ class InversionParams:
             raise ValueError(f"max_iterations must be >= 1, got {self.max_iterations}")
         if self.q0_tolerance is not None and not (self.q0_tolerance > 0):
             raise ValueError(f"q0_tolerance must be > 0 (or None), got {self.q0_tolerance}")
+        if self.wisp_radius is not None:
+            if not (self.wisp_radius >= self.material.radius and np.isfinite(self.wisp_radius)):
+                raise ValueError(f"wisp radius must be at least the fibre radius {self.material.radius:g} m, "
+                                 f"got {self.wisp_radius:g}")
+            if self.contact_radius is not None:
+                raise ValueError("give a wisp radius or a contact radius, not both "
+                                 "(a wisp's contact radius is its radius)")
+        if self.stabilize not in STABILIZE_MODES:
+            raise ValueError(f"stabilize must be one of {STABILIZE_MODES}, got {self.stabilize!r}")
+        if not (self.stability_margin >= 1.0 and np.isfinite(self.stability_margin)):
+            raise ValueError(f"stability margin must be >= 1, got {self.stability_margin}")
+        if not (0.0 <= self.friction_margin < 1.0):
+            raise ValueError(f"friction margin must be in [0, 1), got {self.friction_margin}")
+        if not (self.max_stiffness_factor >= 1.0 and np.isfinite(self.max_stiffness_factor)):
+            raise ValueError(f"max stiffness factor must be >= 1, got {self.max_stiffness_factor}")
 
 
-def isolated_rest_curvatures(helix: sh.SuperHelix, material: Material, gravity, kin=None) -> np.ndarray:
+def strand_stiffness(helix: sh.SuperHelix, material: Material, stiffness_factor=None) -> np.ndarray:
+    """K (S, N, 3): K_j = f_s l_j (GJ, EI, EI), f_s the strand's stiffness factor (None: all 1), 0 on padding."""
+    K = sh.stiffness(helix, material.stiffness_diag)
+    if stiffness_factor is not None:
+        K = K * np.asarray(stiffness_factor, dtype=np.float64).reshape(-1, 1, 1)
+    return K
+
+
+def isolated_rest_curvatures(helix: sh.SuperHelix, material: Material, gravity, kin=None,
+                             stiffness_factor=None) -> np.ndarray:
     """q0 = q - K^-1 F(q), (S, N, 3); padding stays 0."""
     F = gravity_force(helix, material, gravity, kin)
-    K = sh.stiffness(helix, material.stiffness_diag)
+    K = strand_stiffness(helix, material, stiffness_factor)
     q0 = helix.curvatures - np.divide(F, K, out=np.zeros_like(F), where=K > 0)
     return q0
 
@@ -113,10 +144,10 @@ def rest_curvature_guess(helix: sh.SuperHelix, guess: str) -> np.ndarray:
 
 
 def equilibrium_residuals(helix: sh.SuperHelix, rest_curvatures, material: Material, gravity,
-                          contacts=None, forces=None, chunk: int = 1024) -> np.ndarray:
-    """||K (q - q0) - F - H^T r|| / ||F|| per strand, recomputed from scratch (fresh kinematics,
-    H^T r point by point), independent of how q0 was obtained.  In chunks of strands of similar
-    length, each chunk's kinematics serving both F and H^T r."""
+                          contacts=None, forces=None, chunk: int = 1024, stiffness_factor=None) -> np.ndarray:
+    """||K (q - q0) - F - H^T r|| / ||F|| per strand (K with the per-strand ``stiffness_factor``), recomputed
+    from scratch (fresh kinematics, H^T r point by point), independent of how q0 was obtained.  In chunks of
+    strands of similar length, each chunk's kinematics serving both F and H^T r."""
     from .contact.jacobian import _point_forces_generalized
 
     S = helix.n_strands
@@ -151,7 +182,7 @@ def equilibrium_residuals(helix: sh.SuperHelix, rest_curvatures, material: Mater
         if HtR is not None:
             mine = by_chunk[bounds[c]:bounds[c + 1]]
             HtR[ids, :n] = _point_forces_generalized(sub, kin, local[strand[mine]], arc[mine], point_force[mine])
-    K = sh.stiffness(helix, material.stiffness_diag)
+    K = strand_stiffness(helix, material, stiffness_factor)
     res = K * (helix.curvatures - rest_curvatures) - F
     if HtR is not None:
         res -= HtR
@@ -220,9 +251,10 @@ def _row_sums_of_squares(indptr, indices, data, scale):
 
 
 def build_inverse_problem(helix, F, H, material: Material, gravity, guess: str, gamma: float,
-                          mu: np.ndarray) -> InverseProblem:
-    """The scaled SOCQP for gravity forces F (S, N, 3) and contact Jacobian H."""
-    K = sh.stiffness(helix, material.stiffness_diag)
+                          mu: np.ndarray, stiffness_factor=None) -> InverseProblem:
+    """The scaled SOCQP for gravity forces F (S, N, 3) and contact Jacobian H (K with the per-strand
+    ``stiffness_factor``, None: the material's)."""
+    K = strand_stiffness(helix, material, stiffness_factor)
     q0_guess = rest_curvature_guess(helix, guess)
     inv_k = helix.to_flat(np.divide(1.0, K, out=np.zeros_like(K), where=K > 0)).ravel()
     q = helix.to_flat(helix.curvatures).ravel()
@@ -239,9 +271,9 @@ def build_inverse_problem(helix, F, H, material: Material, gravity, guess: str, 
                           q0_free=helix.to_flat(q0_guess).ravel() + d)
 
 
-def rest_curvatures_with_contacts(helix, material, F, H, forces_flat) -> np.ndarray:
+def rest_curvatures_with_contacts(helix, material, F, H, forces_flat, stiffness_factor=None) -> np.ndarray:
     """q0 = q - K^-1 (F + H^T r), (S, N, 3), F the gravity forces (S, N, 3)."""
-    K = sh.stiffness(helix, material.stiffness_diag)
+    K = strand_stiffness(helix, material, stiffness_factor)
     HtR = helix.from_flat((H.T @ forces_flat).reshape(-1, 3))
     return helix.curvatures - np.divide(F + HtR, K, out=np.zeros_like(F), where=K > 0)
 
@@ -293,9 +325,26 @@ class InversionResult:
     gravity: np.ndarray
     contacts: object = None
     forces: np.ndarray = None  # (m, 3) in contact frames (N, T1, T2), newtons
-    stiffness_ratio: np.ndarray = None
+    stiffness_ratio: np.ndarray = None  # isolated, with the input material (stability.stiffness_ratios)
     report: dict = field(default_factory=dict)
     extra_arrays: dict = field(default_factory=dict)  # more arrays for rest.npz (discrete rod data)
+    stiffness_factor: np.ndarray = None  # (S,) E and G of strand s are f_s times the material's (stabilize.py)
+    held_ratio: np.ndarray = None  # (S,) stiffness ratio with the contacts that hold the strand, input material
+
+    def strand_young_modulus(self) -> np.ndarray:
+        """(S,) Young's modulus of every strand (Pa): the material's times the stiffness factor."""
+        return self.material.young_modulus * self._factor()
+
+    def strand_shear_modulus(self) -> np.ndarray:
+        """(S,) shear modulus of every strand (Pa)."""
+        return self.material.G * self._factor()
+
+    def _factor(self) -> np.ndarray:
+        return np.ones(self.helix.n_strands) if self.stiffness_factor is None else np.asarray(self.stiffness_factor)
+
+    def stiffness(self) -> np.ndarray:
+        """K (S, N, 3) with the per-strand moduli."""
+        return strand_stiffness(self.helix, self.material, self._factor())
 
     @property
     def material(self) -> Material:
@@ -335,7 +384,6 @@ def invert_groom(groom: Groom, head=None, params: InversionParams | None = None,
     q0_error_bound, and a FeasibleSolveWarning; with ``params.strict`` (or non-finite forces) it raises
     SolverFailure instead (nothing is written then).
     """
-
     from .fit import fit_groom
 
     params = params or InversionParams()
@@ -369,8 +417,9 @@ def invert_groom(groom: Groom, head=None, params: InversionParams | None = None,
                      "relative_tolerance": params.relative_tolerance,
                      "strands_over_tolerance": int(np.count_nonzero(~np.asarray(fit.converged)))}
 
-    contacts = None
+    contacts = H = F = None
     forces = np.zeros((0, 3))
+    mu = np.zeros(0)
     if params.contacts != "none":
         from .contact import detect_contacts
         from .contact.jacobian import contact_jacobian
@@ -381,7 +430,8 @@ def invert_groom(groom: Groom, head=None, params: InversionParams | None = None,
             pts, offsets, _, arc = sh.sample(helix, params.samples_per_element, kin)
             passes = int(params.contacts == "all") + int(head is not None)
             with _progress(passes, "contacts", quiet, unit="pass") as bar:
-                contacts = detect_contacts(pts, offsets, arc, radius=params.contact_radius,
+                radius = params.wisp_radius if params.wisp_radius is not None else params.contact_radius
+                contacts = detect_contacts(pts, offsets, arc, radius=radius,
                                            head=head, strand_strand=params.contacts == "all", progress=bar)
         with timer.stage("jacobian"):
             H = contact_jacobian(helix, contacts, kin)
@@ -390,40 +440,71 @@ def invert_groom(groom: Groom, head=None, params: InversionParams | None = None,
                               "strand_head": int(np.count_nonzero(np.asarray(contacts.strand_b) < 0)),
                               "radius_m": float(contacts.radius)}
         mu = np.full(len(contacts.strand_a), material.friction)
+        # the inverse problem keeps its forces strictly inside the friction cones (docs/stability.md): a force on
+        # the cone boundary is an equilibrium that round-off tips into sliding
+        mu_solve = (1.0 - params.friction_margin) * mu
         with timer.stage("solve"):
             F = sh.gravity_force(helix, material.linear_density, gravity, kin)
-            problem = build_inverse_problem(helix, F, H, material, gravity, params.guess, params.gamma, mu)
-            solve = _solve(problem, helix, params, quiet, redundant_strand_fraction(helix, contacts))
-        forces = solve["forces"]
-        report["solve"] = {k: v for k, v in solve.items() if k != "forces"}
-        report["solve"]["objective"] = problem.objective(forces.ravel())
-        report["solve"]["cone_violation"] = cone_violation(forces, mu)
-        report["solve"]["gamma"] = params.gamma
-        report["solve"]["guess"] = params.guess
-        if not solve["converged"]:
-            if params.strict or not solve.get("feasible"):
-                report["timings_s"] = dict(timer.stages)
-                raise SolverFailure(_failure_message(solve, params), solve["status"], solve["residual"], report)
-            _accept_feasible(report["solve"], params)
-        with timer.stage("rest_curvatures"):
-            rest = rest_curvatures_with_contacts(helix, material, F, H, forces.ravel())
-    else:
-        with timer.stage("rest_curvatures"):
-            rest = isolated_rest_curvatures(helix, material, gravity)
+            redundant = redundant_strand_fraction(helix, contacts)
+
+    # stable inversion (stabilize.py): solve, find the strands unstable with the contacts that hold them,
+    # stiffen exactly those, solve again with the new K
+    with timer.stage("stability"):
+        ratio = stiffness_ratios_progress(helix, material, gravity, quiet)
+    factor = np.ones(helix.n_strands)
+    if params.stiffness_factor is not None:
+        given = np.asarray(params.stiffness_factor, dtype=np.float64).reshape(-1)
+        if given.shape != (helix.n_strands,) or not np.all(np.isfinite(given) & (given > 0)):
+            raise ValueError(f"stiffness_factor must be {helix.n_strands} positive numbers, one per strand")
+        factor = given.copy()
+    held, rounds, history = None, 0, []
+    while True:
+        if contacts is not None:
+            with timer.stage("solve"):
+                problem = build_inverse_problem(helix, F, H, material, gravity, params.guess, params.gamma, mu_solve,
+                                                stiffness_factor=factor)
+                solve = _solve(problem, helix, params, quiet, redundant)
+            forces = solve["forces"]
+            report["solve"] = {k: v for k, v in solve.items() if k != "forces"}
+            report["solve"]["objective"] = problem.objective(forces.ravel())
+            report["solve"]["cone_violation"] = cone_violation(forces, mu_solve)
+            report["solve"]["friction_margin"] = params.friction_margin
+            report["solve"]["gamma"] = params.gamma
+            report["solve"]["guess"] = params.guess
+            if not solve["converged"]:
+                if params.strict or not solve.get("feasible"):
+                    report["timings_s"] = dict(timer.stages)
+                    raise SolverFailure(_failure_message(solve, params), solve["status"], solve["residual"], report)
+                _accept_feasible(report["solve"], params)
+            with timer.stage("rest_curvatures"):
+                rest = rest_curvatures_with_contacts(helix, material, F, H, forces.ravel(), stiffness_factor=factor)
+        else:
+            with timer.stage("rest_curvatures"):
+                rest = isolated_rest_curvatures(helix, material, gravity, stiffness_factor=factor)
+        if params.stabilize == "none":
+            break
+        with timer.stage("stability_with_contacts"):
+            held = held_stability(helix, material, gravity, contacts, forces, H, mu, ratio, quiet)
+        step = stiffening_step(held.ratio, factor, params.stability_margin, params.max_stiffness_factor)
+        history.append({"unstable": int(np.count_nonzero(held.ratio >= factor)),
+                        "max_ratio": float(held.ratio.max()) if len(held.ratio) else 0.0})
+        if params.stabilize != "stiffness" or step is None or rounds >= MAX_ROUNDS:
+            break
+        history[-1]["raised"] = int(np.count_nonzero(step > factor))
+        factor, rounds = step, rounds + 1
 
     extra = {}
     if params.discrete_rest_data:
         with timer.stage("discrete_rest_data"):
             extra, report["discrete_rest_data"] = discrete_rest_data(
-                groom, helix, material, gravity, contacts, forces, params.rod_segments)
+                groom, helix, material, gravity, contacts, forces, params.rod_segments,
+                stiffness_factor=factor if np.any(factor != 1.0) else None)
 
     with timer.stage("equilibrium_check"):
-        residual = equilibrium_residuals(helix, rest, material, gravity, contacts, forces)
+        residual = equilibrium_residuals(helix, rest, material, gravity, contacts, forces, stiffness_factor=factor)
     report["equilibrium"] = {"max_relative_residual": float(residual.max()) if len(residual) else 0.0,
                              "mean_relative_residual": float(residual.mean()) if len(residual) else 0.0}
 
-    with timer.stage("stability"):
-        ratio = stiffness_ratios_progress(helix, material, gravity, quiet)
     unstable = np.flatnonzero(ratio >= 1.0)
     report["stability"] = {
         "unstable_strands": int(len(unstable)),
@@ -431,20 +512,25 @@ def invert_groom(groom: Groom, head=None, params: InversionParams | None = None,
         "max_stiffness_ratio": float(ratio.max()) if len(ratio) else 0.0,
         "required_young_modulus_factor": float(max(1.0, ratio.max())) if len(ratio) else 1.0,
         "unstable_strand_ids": unstable[:100].tolist(),
-        "note": ("isolated-strand criterion; strands longer than the Greenhill length "
+        "note": ("isolated-strand criterion with the input material; strands longer than the Greenhill length "
                  f"{material.greenhill_length():.3f} m rising from the scalp are only held by contact"),
     }
-    if contacts is not None and len(unstable):
-        with timer.stage("stability_with_contacts"):
-            held = contact_held_unstable(helix, material, gravity, contacts, forces, H, unstable, ratio[unstable])
-        report["stability"]["unstable_with_contacts"] = int(np.count_nonzero(held >= 1.0))
-        report["stability"]["criterion_with_contacts"] = (
-            "Hessian restricted to motions that keep every contact point with a positive normal force fixed")
+    if held is not None:
+        report["stability"]["unstable_with_contacts"] = int(np.count_nonzero(held.ratio >= factor))
+        report["stability"]["criterion_with_contacts"] = HELD_CRITERION
+        report["stability"]["stabilization"] = stabilization_report(
+            params.stabilize, held.ratio, factor, held.kind, rounds, params.stability_margin,
+            params.max_stiffness_factor)
+        report["stability"]["stabilization"]["history"] = history
+    if params.wisp_radius is not None:
+        report["wisp"] = wisp_report(params.wisp_radius, material)
     report["timings_s"] = dict(timer.stages)
     report["timings_s"]["total"] = timer.total()
     report["parameters"] = {
         "tolerance_m": params.tolerance, "relative_tolerance": params.relative_tolerance,
-        "contacts": params.contacts, "contact_radius_m": params.contact_radius, "guess": params.guess,
+        "contacts": params.contacts, "contact_radius_m": params.contact_radius, "wisp_radius_m": params.wisp_radius,
+        "friction_margin": params.friction_margin, "stabilize": params.stabilize,
+        "guess": params.guess,
         "gamma": params.gamma, "solver": params.solver, "solver_tolerance": params.solver_tolerance,
         "q0_tolerance": params.q0_tolerance, "strict": params.strict,
         "snap_roots": params.snap_roots,
@@ -452,7 +538,8 @@ def invert_groom(groom: Groom, head=None, params: InversionParams | None = None,
     return InversionResult(groom=groom, head=head, params=params, helix=helix, rest_curvatures=rest,
                            fit_max_error=np.asarray(fit.max_error), fit_mean_error=np.asarray(fit.mean_error),
                            gravity=gravity, contacts=contacts, forces=forces, stiffness_ratio=ratio,
-                           report=report, extra_arrays=extra)
+                           report=report, extra_arrays=extra, stiffness_factor=factor,
+                           held_ratio=None if held is None else held.ratio)
 
 
 DISCRETE_KEYS = ("rod_points", "rod_offsets", "cosserat_directors", "cosserat_rest_kappa", "cosserat_rest_sigma",
@@ -474,19 +561,25 @@ def contact_point_forces(groom: Groom, helix: sh.SuperHelix, contacts, forces):
     return strands, s_poly, f
 
 
-def discrete_rest_data(groom: Groom, helix, material: Material, gravity, contacts, forces, segments=None):
+def discrete_rest_data(groom: Groom, helix, material: Material, gravity, contacts, forces, segments=None, *,
+                       stiffness_factor=None):
     """Cosserat (PyElastica) and DER rest data that make the groomed polylines an exact discrete
-    equilibrium under gravity and the solved contact forces (docs/rest_data.md)."""
+    equilibrium under gravity and the solved contact forces (docs/rest_data.md).  ``stiffness_factor``
+    (S,): strand s is solved with moduli f_s E, f_s G (None: the material's own)."""
     from .groom import GroomError
     from .rods.cosserat import cosserat_rest_data
     from .rods.der import der_rest_data
-    from .rods.discrete import RestDataError, prepare_rods
+    from .rods.discrete import RestDataError, prepare_rods, strand_stiffness_factors
 
+    if stiffness_factor is not None:     # a bad factor array is the caller's error, not the groom's
+        stiffness_factor = strand_stiffness_factors(stiffness_factor, len(groom.offsets) - 1)
     loads = contact_point_forces(groom, helix, contacts, forces)
     try:
         rod = prepare_rods(groom.points, groom.offsets, segments)
-        cos = cosserat_rest_data(groom.points, groom.offsets, material, gravity, loads, rod=rod)
-        der = der_rest_data(groom.points, groom.offsets, material, gravity, loads, rod=rod)
+        cos = cosserat_rest_data(groom.points, groom.offsets, material, gravity, loads, rod=rod,
+                                 stiffness_factor=stiffness_factor)
+        der = der_rest_data(groom.points, groom.offsets, material, gravity, loads, rod=rod,
+                            stiffness_factor=stiffness_factor)
     except RestDataError as exc:
         raise GroomError(f"{groom.source}: discrete rest data: {exc} (try --rod-segments N)") from exc
     merged = {**cos, **der}
@@ -496,67 +589,40 @@ def discrete_rest_data(groom: Groom, helix, material: Material, gravity, contact
     return arrays, report
 
 
-def contact_held_unstable(helix, material: Material, gravity, contacts, forces, H, strands,
-                          isolated_ratios=None) -> np.ndarray:
-    """The stiffness ratio of each listed strand when its active contacts (r_N > 0) hold it:
-    the Hessian K - dF/dq restricted to motions with H_i dq = 0 for those contacts.  A strand without
-    an active contact keeps its isolated ratio (``isolated_ratios``, computed when not given).
-    All strands in one batch (stability.contact_held_ratios); each one's rows of H read straight from CSR."""
-    from .stability import _csr_block, contact_held_ratios
-
-    strands = np.asarray(strands, dtype=np.int64)
-    active = np.flatnonzero(forces[:, 0] > 0)
-    strand_a, strand_b = np.asarray(contacts.strand_a)[active], np.asarray(contacts.strand_b)[active]
-    # active contacts grouped by strand (a contact between two strands is listed under both)
-    owner = np.concatenate([strand_a, strand_b[strand_b >= 0]])
-    which = np.concatenate([active, active[strand_b >= 0]])
-    order = np.argsort(owner, kind="stable")
-    owner, which = owner[order], which[order]
-    cols = 3 * helix.flat_offsets()
-    H = H.tocsr()
-    out = np.empty(len(strands))
-    todo, blocked = [], []
-    for k, s in enumerate(strands):
-        lo, hi = np.searchsorted(owner, [s, s + 1])
-        mine = np.unique(which[lo:hi])
-        if not len(mine) and isolated_ratios is not None:
-            out[k] = isolated_ratios[k]
-            continue
-        rows = (3 * mine[:, None] + np.arange(3)).ravel()
-        todo.append(k)
-        blocked.append(_csr_block(H, rows, cols[s], cols[s + 1]) if len(rows) else None)
-    if todo:
-        out[todo] = contact_held_ratios(helix, strands[todo], material.stiffness_diag, material.linear_density,
-                                        gravity, blocked)
-    return out
+WISP_PACKING = 0.5  # fraction of a wisp's cross-section filled by fibres
 
 
-def _contact_held_unstable_reference(helix, material: Material, gravity, contacts, forces, H, strands,
-                                     isolated_ratios=None) -> np.ndarray:
-    """The original :func:`contact_held_unstable` (one strand at a time, its dF/dq recomputed, SVD null
-    space): tests and benchmarks only."""
-    from .stability import _contact_held_ratio_reference as contact_held_ratio
+def wisp_report(wisp_radius: float, material: Material) -> dict:
+    """What a strand standing for a wisp of radius R represents (docs/stability.md, section 5): about
+    n = packing (R / a)^2 fibres of radius a.  A loose wisp (fibres not bonded) has n times a fibre's mass
+    and n times its bending and twisting stiffness, so the rest curvatures and the stability ratios are a
+    fibre's (K and F both scale by n); contact forces per wisp are n times those written."""
+    n = WISP_PACKING * (wisp_radius / material.radius) ** 2
+    return {"radius_m": float(wisp_radius), "fibres_per_strand": float(n), "packing": WISP_PACKING,
+            "linear_density_kg_m": float(n * material.linear_density),
+            "bending_stiffness_N_m2": float(n * material.bending_stiffness),
+            "note": ("each strand is a loose wisp of about this many fibres: mass and stiffness scale together, "
+                     "so the rest curvatures are a fibre's; the wisp radius is the contact radius; contact forces "
+                     "of a wisp are fibres_per_strand times the forces written")}
 
-    active = np.flatnonzero(forces[:, 0] > 0)
-    strand_a, strand_b = np.asarray(contacts.strand_a)[active], np.asarray(contacts.strand_b)[active]
-    # active contacts grouped by strand (a contact between two strands is listed under both)
-    owner = np.concatenate([strand_a, strand_b[strand_b >= 0]])
-    which = np.concatenate([active, active[strand_b >= 0]])
-    order = np.argsort(owner, kind="stable")
-    owner, which = owner[order], which[order]
-    cols = 3 * helix.flat_offsets()
-    H = H.tocsr()
-    out = np.empty(len(strands))
-    for k, s in enumerate(strands):
-        lo, hi = np.searchsorted(owner, [s, s + 1])
-        mine = np.unique(which[lo:hi])
-        if not len(mine) and isolated_ratios is not None:
-            out[k] = isolated_ratios[k]
-            continue
-        rows = (3 * mine[:, None] + np.arange(3)).ravel()
-        blocked = H[rows][:, cols[s]:cols[s + 1]].toarray() if len(rows) else None
-        out[k] = contact_held_ratio(helix, s, material.stiffness_diag, material.linear_density, gravity, blocked)
-    return out
+
+HELD_CRITERION = ("per strand: lambda_max of K^-1/2 (dF/dq + dF_c/dq) K^-1/2 on the motions that keep its loaded head "
+                  "contacts in place (3 rows sticking, the normal row on the cone boundary) < stiffness factor; "
+                  "strand/strand forces as dead loads (a safe bound for the coupled groom)")
+
+
+def held_stability(helix, material: Material, gravity, contacts, forces, H, mu, isolated_ratios, quiet=True):
+    """Stiffness ratios with the contacts that hold each strand (stability.held_stiffness_ratios); without
+    contacts, the isolated ratios."""
+    from .stability import HeldStability, held_stiffness_ratios
+
+    S = helix.n_strands
+    if contacts is None:
+        return HeldStability(np.array(isolated_ratios, dtype=np.float64), np.zeros(S, np.int8),
+                             np.zeros(S, np.int64), np.zeros(S, np.int64))
+    with _progress(S, "stability with contacts", quiet) as bar:
+        return held_stiffness_ratios(helix, material.stiffness_diag, material.linear_density, gravity, contacts,
+                                     forces, H, mu, isolated_ratios=isolated_ratios, progress=bar)
 
 
 def stiffness_ratios_progress(helix, material, gravity, quiet):

@@ -9,9 +9,9 @@ and the **stiffness ratio** rho = lambda_max(K^-1/2 (dF/dq) K^-1/2) is the facto
 least be multiplied for stability (rho < 1: stable, with margin 1 / rho).  This is the sufficient
 condition EI / rhoS >= A(q) of Derouet-Jourdan et al. 2010 (dF/dq is proportional to rhoS).
 
-With contacts, motions that push into an active contact are blocked: the *contact-held* ratio uses
-the Hessian restricted to the motions that keep every active contact point fixed (the null space of
-its rows of H), the second-order condition for a sticking contact set.
+With contacts, motions that push into a loaded contact are blocked: the *held* ratio uses the Hessian,
+with the stiffness of the contact forces, restricted to the null space of the blocking rows of H: the
+second-order condition of the constrained equilibrium (:func:`held_stiffness_ratios`).
 
 Computation.  A = K^-1/2 dF/dq K^-1/2 is block diagonal plus semiseparable (3x3 blocks, generators from
 superhelix._gravity_hessian_parts scaled by K^-1/2):
@@ -23,16 +23,18 @@ complements keep the form through one 3x3 Phi).  rho = lambda_max(A) is pinned b
 quotient theta <= lambda_max (Lanczos, then inverse iteration with shifts proved to lie above lambda_max)
 and a shift theta + tol at which the Cholesky succeeds (lambda_max < theta + tol), tol = 1e-12 |theta| +
 32 eps ||A||_F, the round-off level of a dense eigvalsh (100 tol accepted once theta has stopped moving); a
-strand that does not get there falls back to the dense eigvalsh.  The contact-held ratio is certified the same way, by a dense Cholesky
-(:func:`contact_held_ratios`).
+strand that does not get there falls back to the dense eigvalsh.
+
+With the contacts that hold a strand (:func:`held_stiffness_ratios`) the Hessian gains the stiffness of the
+contact forces (dead loads) and is restricted to the motions the loaded head contacts allow; dense per
+strand (docs/stability.md).
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
-import scipy.linalg
-import scipy.linalg.blas
-import scipy.linalg.lapack
 from numba import njit
 from threadpoolctl import threadpool_limits
 
@@ -42,7 +44,6 @@ RTOL = 1e-12  # relative part of the certified gap lambda_max - theta
 ATOL_EPS = 32.0  # absolute part, in units of eps ||A||_F
 MAX_STEPS = 60
 LANCZOS_STEPS = 12
-HELD_LANCZOS_STEPS = 20
 
 
 def stiffness_ratios(helix: sh.SuperHelix, stiffness_diag, linear_density: float, gravity,
@@ -417,44 +418,6 @@ def _lambda_max_batch(u, v, d, n_elements, rtol, atol_eps, max_steps, lanczos_st
         out[s], ok[s] = _lambda_max(u[s, :N], v[s, :N], d[s, :N], N, rtol, atol_eps, max_steps, lanczos_steps)
 
 
-# --------------------------------------------------------------------------- contact-held ratios
-def contact_held_ratio(helix: sh.SuperHelix, strand: int, stiffness_diag, linear_density: float, gravity,
-                       blocked_rows: np.ndarray) -> float:
-    """rho for one strand when the motions in the row space of ``blocked_rows`` (k x 3n) are blocked."""
-    return float(contact_held_ratios(helix, [strand], stiffness_diag, linear_density, gravity, [blocked_rows])[0])
-
-
-def contact_held_ratios(helix: sh.SuperHelix, strands, stiffness_diag, linear_density: float, gravity,
-                        blocked_rows, chunk: int = 512) -> np.ndarray:
-    """rho of each listed strand with the motions in the row space of its ``blocked_rows[i]`` (k x 3n, or None)
-    blocked: lambda_max(Z^T A Z), Z an orthonormal basis of null(C), C = blocked K^-1/2 (0 if it is empty).
-
-    With Q an orthonormal basis of C's row space (SVD of C, rank as in scipy's null_space), Z^T A Z has the
-    eigenvalues of B = P A P - c Q Q^T (P = I - Q Q^T, c = 2 ||A||_F) but for r copies of -c.  A Rayleigh
-    quotient theta of A on null(C) (Lanczos, then if needed constrained inverse iteration, both O(N) per step)
-    is accepted when a dense Cholesky of (theta + tol) I - B succeeds; otherwise the top eigenvalue of B."""
-    strands = np.asarray(strands, dtype=np.int64)
-    out = np.empty(len(strands))
-    order = np.argsort(helix.n_elements[strands], kind="stable")
-    with threadpool_limits(1, user_api="blas"):
-        for start in range(0, len(strands), chunk):
-            ids = order[start:start + chunk]
-            sub = helix.subset(strands[ids])
-            u, v, d = _scaled_generators(sub, stiffness_diag, linear_density, gravity)
-            K = sh.stiffness(sub, stiffness_diag).reshape(len(ids), -1)
-            scale = 1.0 / np.sqrt(np.where(K > 0, K, 1.0))
-            for i, k in enumerate(ids):
-                N = int(sub.n_elements[i])
-                rows = blocked_rows[k]
-                if rows is None or len(rows) == 0:
-                    lam, ok = _lambda_max(u[i, :N], v[i, :N], d[i, :N], N, RTOL, ATOL_EPS, MAX_STEPS, LANCZOS_STEPS)
-                    out[k] = lam if ok else np.linalg.eigvalsh(_dense(u[i], v[i], d[i], N))[-1]
-                    continue
-                out[k] = _held_top(u[i, :N], v[i, :N], d[i, :N], N,
-                                   np.asarray(rows, dtype=np.float64) * scale[i, :3 * N])
-    return out
-
-
 def _csr_block(H, rows, c0, c1) -> np.ndarray:
     """H[rows][:, c0:c1] as a dense array, H in CSR form."""
     out = np.zeros((len(rows), c1 - c0))
@@ -470,203 +433,6 @@ def _csr_block_kernel(indptr, indices, data, rows, c0, c1, out):
             c = indices[p]
             if c0 <= c < c1:
                 out[i, c - c0] += data[p]
-
-
-def _held_top(u, v, d, N, C):
-    """lambda_max(Z^T A Z) for Z an orthonormal basis of null(C) (contact_held_ratios); 0 if it is empty."""
-    A = _dense(u, v, d, N)
-    n = A.shape[0]
-    # as scipy.linalg.null_space: the SVD of C (its right singular vectors, so that an ill-conditioned C gives
-    # the same subspace to round-off) and its rank threshold
-    _, s, Vh = np.linalg.svd(C, full_matrices=False)
-    r = int(np.count_nonzero(s > (s.max() if len(s) else 0.0) * np.finfo(float).eps * max(C.shape[0], n)))
-    if r == n:
-        return 0.0
-    Q = np.ascontiguousarray(Vh[:r].T)
-    AQ = A @ Q
-    norm = np.linalg.norm(A)
-    c = 2.0 * norm or 1.0
-    W = AQ + Q @ (0.5 * (c * np.eye(r) - Q.T @ AQ))  # B = P A P - c Q Q^T = A - Q W^T - W Q^T
-    x = np.empty(n)
-    theta, spread = _held_lanczos(u, v, d, N, Q, HELD_LANCZOS_STEPS, x)
-    for attempt in range(2):  # the Lanczos Rayleigh quotient, else refined by inverse iteration
-        if attempt:
-            theta = _held_refine(u, v, d, N, Q, x, theta, spread, MAX_STEPS)
-        if np.isfinite(theta):
-            shifted = np.asfortranarray(-A)  # (theta + tol) I - B, lower triangle
-            shifted.flat[::n + 1] += theta + RTOL * abs(theta) + ATOL_EPS * np.finfo(float).eps * (norm + c)
-            shifted = scipy.linalg.blas.dsyr2k(1.0, Q, W, beta=1.0, c=shifted, lower=1, overwrite_c=1)
-            if scipy.linalg.lapack.dpotrf(shifted, lower=1, clean=0, overwrite_a=1)[1] == 0:
-                return float(theta)
-    B = A - Q @ W.T - W @ Q.T
-    return float(scipy.linalg.lapack.dsyevr(B, compute_v=0, range="I", il=n, iu=n, overwrite_a=1)[0][0])
-
-
-@njit(cache=True, error_model="numpy")
-def _ldl(u, v, d, N, sigma, Pinv, W):
-    """Block LDL^T of sigma I - A without pivoting (it may be indefinite): pivots P_j (their inverses kept),
-    W_j = v_j Phi - u_j, Phi -= W_j^T P_j^-1 W_j.  False if a pivot is singular."""
-    Phi = np.zeros((3, 3))
-    T = np.empty((3, 3))
-    P = np.empty((3, 3))
-    for j in range(N):
-        for a in range(3):
-            for b in range(3):
-                T[a, b] = v[j, a, 0] * Phi[0, b] + v[j, a, 1] * Phi[1, b] + v[j, a, 2] * Phi[2, b]
-        for a in range(3):
-            for b in range(3):
-                P[a, b] = -d[j, a, b] + T[a, 0] * v[j, b, 0] + T[a, 1] * v[j, b, 1] + T[a, 2] * v[j, b, 2]
-            P[a, a] += sigma
-        c00 = P[1, 1] * P[2, 2] - P[1, 2] * P[2, 1]
-        c01 = P[1, 2] * P[2, 0] - P[1, 0] * P[2, 2]
-        c02 = P[1, 0] * P[2, 1] - P[1, 1] * P[2, 0]
-        det = P[0, 0] * c00 + P[0, 1] * c01 + P[0, 2] * c02
-        if not (det != 0.0 and np.isfinite(det)):
-            return False
-        inv = 1.0 / det
-        Pinv[j, 0, 0] = c00 * inv
-        Pinv[j, 1, 0] = c01 * inv
-        Pinv[j, 2, 0] = c02 * inv
-        Pinv[j, 0, 1] = (P[0, 2] * P[2, 1] - P[0, 1] * P[2, 2]) * inv
-        Pinv[j, 1, 1] = (P[0, 0] * P[2, 2] - P[0, 2] * P[2, 0]) * inv
-        Pinv[j, 2, 1] = (P[0, 1] * P[2, 0] - P[0, 0] * P[2, 1]) * inv
-        Pinv[j, 0, 2] = (P[0, 1] * P[1, 2] - P[0, 2] * P[1, 1]) * inv
-        Pinv[j, 1, 2] = (P[0, 2] * P[1, 0] - P[0, 0] * P[1, 2]) * inv
-        Pinv[j, 2, 2] = (P[0, 0] * P[1, 1] - P[0, 1] * P[1, 0]) * inv
-        for a in range(3):
-            for b in range(3):
-                W[j, a, b] = T[a, b] - u[j, a, b]
-        for a in range(3):  # Phi -= W^T (P^-1 W)
-            for b in range(3):
-                acc = 0.0
-                for e in range(3):
-                    pw = Pinv[j, e, 0] * W[j, 0, b] + Pinv[j, e, 1] * W[j, 1, b] + Pinv[j, e, 2] * W[j, 2, b]
-                    acc += W[j, e, a] * pw
-                Phi[a, b] -= acc
-    return True
-
-
-@njit(cache=True, error_model="numpy")
-def _ldl_solve(v, Pinv, W, N, b, x):
-    """x = (sigma I - A)^-1 b with the factors of :func:`_ldl`."""
-    h = np.zeros(3)
-    w = np.empty(3)
-    for a in range(N):
-        for e in range(3):
-            w[e] = b[3 * a + e] - (v[a, e, 0] * h[0] + v[a, e, 1] * h[1] + v[a, e, 2] * h[2])
-        for e in range(3):
-            x[3 * a + e] = Pinv[a, e, 0] * w[0] + Pinv[a, e, 1] * w[1] + Pinv[a, e, 2] * w[2]
-        for e in range(3):
-            h[e] += W[a, 0, e] * x[3 * a] + W[a, 1, e] * x[3 * a + 1] + W[a, 2, e] * x[3 * a + 2]
-    r = np.zeros(3)
-    for j in range(N - 1, -1, -1):
-        for e in range(3):
-            w[e] = W[j, e, 0] * r[0] + W[j, e, 1] * r[1] + W[j, e, 2] * r[2]
-        for e in range(3):
-            x[3 * j + e] -= Pinv[j, e, 0] * w[0] + Pinv[j, e, 1] * w[1] + Pinv[j, e, 2] * w[2]
-        for e in range(3):
-            r[e] += v[j, 0, e] * x[3 * j] + v[j, 1, e] * x[3 * j + 1] + v[j, 2, e] * x[3 * j + 2]
-
-
-@njit(cache=True, error_model="numpy")
-def _project(Q, x):
-    """x -= Q (Q^T x)."""
-    for c in range(Q.shape[1]):
-        acc = 0.0
-        for i in range(x.shape[0]):
-            acc += Q[i, c] * x[i]
-        for i in range(x.shape[0]):
-            x[i] -= acc * Q[i, c]
-
-
-@njit(cache=True, error_model="numpy")
-def _held_lanczos(u, v, d, N, Q, steps, x):
-    """Lanczos on P A P from a vector in null(C) (= null(Q^T)): the Rayleigh quotient of A at the top Ritz
-    vector (a lower bound of lambda_max(Z^T A Z)), that vector in x, and the spread of the Ritz values."""
-    n = 3 * N
-    m = min(steps, n - Q.shape[1])
-    if m < 1:
-        return np.nan, 0.0
-    Qk = np.empty((m, n))
-    alpha = np.zeros(m)
-    beta = np.zeros(m)
-    w = np.empty(n)
-    for i in range(n):
-        x[i] = 1.0 + 0.5 * np.sin(1.7 * i + 0.3)
-    _project(Q, x)
-    nrm = np.sqrt(np.sum(x * x))
-    if not nrm > 0.0:
-        return np.nan, 0.0
-    Qk[0] = x / nrm
-    kk = m
-    for k in range(m):
-        _matvec(u, v, d, N, Qk[k], w)
-        _project(Q, w)
-        a = np.sum(w * Qk[k])
-        alpha[k] = a
-        w -= a * Qk[k]
-        if k > 0:
-            w -= beta[k - 1] * Qk[k - 1]
-        b = np.sqrt(np.sum(w * w))
-        beta[k] = b
-        if k == m - 1 or not b > 1e-300 * (abs(a) + 1.0):
-            kk = k + 1
-            break
-        Qk[k + 1] = w / b
-    sv = np.empty(kk)
-    top, width = _tridiagonal_top(alpha, beta, kk, sv)
-    for i in range(n):
-        acc = 0.0
-        for j in range(kk):
-            acc += sv[j] * Qk[j, i]
-        x[i] = acc
-    _project(Q, x)
-    x /= np.sqrt(np.sum(x * x))
-    _matvec(u, v, d, N, x, w)
-    return np.sum(x * w), max(width, abs(top), 1e-300)
-
-
-@njit(cache=True, error_model="numpy")
-def _held_refine(u, v, d, N, Q, x, theta, spread, max_steps):
-    """Inverse iteration on the constrained problem from x: y = z - G S^-1 Q^T z, z = M^-1 x, G = M^-1 Q,
-    S = Q^T G, M = sigma I - A (:func:`_ldl`), sigma just above the current Rayleigh quotient.  Returns the
-    last Rayleigh quotient of A (a lower bound of lambda_max(Z^T A Z)); NaN when it fails."""
-    n = 3 * N
-    r = Q.shape[1]
-    Pinv = np.empty((N, 3, 3))
-    Wf = np.empty((N, 3, 3))
-    G = np.empty((n, r))
-    col = np.empty(n)
-    z = np.empty(n)
-    Ax = np.empty(n)
-    sigma = theta + 1e-6 * spread
-    prev = theta
-    for _ in range(max_steps):
-        if not _ldl(u, v, d, N, sigma, Pinv, Wf):
-            sigma += 1e-6 * spread
-            continue
-        for c in range(r):
-            for i in range(n):
-                col[i] = Q[i, c]
-            _ldl_solve(v, Pinv, Wf, N, col, z)
-            for i in range(n):
-                G[i, c] = z[i]
-        _ldl_solve(v, Pinv, Wf, N, x, z)
-        mu = np.linalg.solve(Q.T @ G, Q.T @ z)
-        for i in range(n):
-            x[i] = z[i] - np.sum(G[i] * mu)
-        _project(Q, x)
-        nrm = np.sqrt(np.sum(x * x))
-        if not (nrm > 0.0 and np.isfinite(nrm)):
-            return np.nan
-        x /= nrm
-        _matvec(u, v, d, N, x, Ax)
-        t = np.sum(x * Ax)
-        if abs(t - prev) <= 1e-14 * abs(t):
-            return t
-        sigma = t + 1e-3 * abs(t - prev) + 1e-9 * spread  # just above: fast, and not singular
-        prev = t
-    return prev
 
 
 def _stiffness_ratios_reference(helix: sh.SuperHelix, stiffness_diag, linear_density: float, gravity,
@@ -693,19 +459,176 @@ def _ratios_reference(helix, stiffness_diag, linear_density, gravity):
     return np.linalg.eigvalsh(A)[:, -1]
 
 
-def _contact_held_ratio_reference(helix: sh.SuperHelix, strand: int, stiffness_diag, linear_density: float,
-                                  gravity, blocked_rows: np.ndarray) -> float:
-    """The original one-strand route (SVD null space, Z^T A Z, eigvalsh): tests and benchmarks only."""
-    sub = helix.subset([strand])
-    n = 3 * int(sub.n_elements[0])
-    dF = sh._gravity_force_jacobian_reference(sub, linear_density, gravity)[0, :n, :n]
-    K = sh.stiffness(sub, stiffness_diag).reshape(-1)[:n]
-    scale = 1.0 / np.sqrt(K)
-    A = scale[:, None] * dF * scale[None, :]
-    if blocked_rows is not None and len(blocked_rows):
-        # motions dq = K^-1/2 y with blocked_rows dq = 0
-        Z = scipy.linalg.null_space(np.asarray(blocked_rows) * scale[None, :])
+# --------------------------------------------------------------------------- stability with the contacts that hold it
+STICK_SLACK = 1e-6  # a force with ||r_T|| < (1 - STICK_SLACK) mu r_N sticks; on the cone boundary it may slide
+
+
+@dataclass
+class HeldStability:
+    """Per strand (S,): ``ratio`` rho = lambda_max of K^-1/2 (dF/dq + dF_c/dq) K^-1/2 on the motions the
+    strand's contacts allow (with the *base* stiffness K: a strand whose stiffness is multiplied by f has the
+    ratio rho / f, stable iff rho / f < 1); ``kind`` 0 where no loaded contact touches the strand (rho is the
+    isolated ratio), 1 where contacts load it (the reduced Hessian below); ``blocked_rows`` the number of
+    constraint rows, ``loaded_contacts`` the number of contacts with r_N > 0 on the strand."""
+
+    ratio: np.ndarray
+    kind: np.ndarray
+    blocked_rows: np.ndarray
+    loaded_contacts: np.ndarray
+
+
+def contact_load_hessians(helix: sh.SuperHelix, strands, point_strand, point_s, point_force,
+                          rotation_step: float = 1e-6, chunk_dofs: int = 6000) -> list:
+    """d(J^T f)/dq per listed strand (dense n x n, n = 3 N_s): the stiffness of the world point loads
+    f_p at arc lengths s_p held fixed (dead loads), i.e. the Hessian of sum_p f_p . C(s_p; q).
+
+    Central differences of the exact generalized force (contact.jacobian._point_forces_generalized) with
+    a step of ``rotation_step`` radians per element (dq_j = rotation_step / l_j): truncation O(step^2) and
+    round-off O(eps / step), about 1e-10 relative; symmetrised (it is a Hessian).  Strands are batched so
+    that at most ``chunk_dofs`` perturbed copies are built at once."""
+    from .contact.jacobian import _point_forces_generalized
+
+    strands = np.asarray(strands, dtype=np.int64)
+    point_strand = np.asarray(point_strand, dtype=np.int64)
+    order = np.argsort(point_strand, kind="stable")
+    ps, pss, pf = point_strand[order], np.asarray(point_s, float)[order], np.asarray(point_force, float)[order]
+    out = [None] * len(strands)
+    start = 0
+    while start < len(strands):
+        stop, copies = start, 0
+        while stop < len(strands) and (copies == 0 or copies + 6 * helix.n_elements[strands[stop]] <= chunk_dofs):
+            copies += 6 * int(helix.n_elements[strands[stop]])
+            stop += 1
+        ids = strands[start:stop]
+        sub = helix.subset(ids)
+        N = sub.max_elements
+        owner, signs, dofs = [], [], []
+        for i in range(len(ids)):
+            n = 3 * int(sub.n_elements[i])
+            owner.append(np.full(2 * n, i))
+            signs.append(np.repeat([1.0, -1.0], n))
+            dofs.append(np.tile(np.arange(n), 2))
+        owner, signs, dofs = np.concatenate(owner), np.concatenate(signs), np.concatenate(dofs)
+        elem, comp = dofs // 3, dofs % 3
+        step = rotation_step / sub.lengths[owner, elem]
+        q = sub.curvatures[owner].copy()
+        q[np.arange(len(owner)), elem, comp] += signs * step
+        copies_helix = sh.SuperHelix(sub.root_positions[owner], sub.root_frames[owner], sub.lengths[owner], q,
+                                     sub.n_elements[owner])
+        # every copy carries the loads of its strand
+        lo = np.searchsorted(ps, ids, "left")
+        hi = np.searchsorted(ps, ids, "right")
+        count = (hi - lo)[owner]
+        copy_of_point = np.repeat(np.arange(len(owner)), count)
+        first = np.repeat(lo[owner], count)
+        within = np.arange(len(copy_of_point)) - np.repeat(np.cumsum(count) - count, count)
+        pidx = first + within
+        g = _point_forces_generalized(copies_helix, sh.kinematics(copies_helix), copy_of_point, pss[pidx], pf[pidx])
+        g = g.reshape(len(owner), 3 * N)
+        pos = 0
+        for i in range(len(ids)):
+            n = 3 * int(sub.n_elements[i])
+            plus, minus = g[pos:pos + n, :n], g[pos + n:pos + 2 * n, :n]
+            h = step[pos:pos + n]
+            D = ((plus - minus) / (2.0 * h[:, None])).T  # column k: d g / d q_k
+            out[start + i] = 0.5 * (D + D.T)
+            pos += 2 * n
+        start = stop
+    return out
+
+
+def held_stiffness_ratios(helix: sh.SuperHelix, stiffness_diag, linear_density: float, gravity, contacts, forces,
+                          H, mu, isolated_ratios=None, progress=None) -> HeldStability:
+    """The stiffness ratio of every strand given the contacts that hold it (docs/stability.md).
+
+    Second-order condition of the constrained equilibrium, strand by strand:
+    lambda_max(Z^T K^-1/2 (dF/dq + dF_c/dq) K^-1/2 Z) < 1, with
+
+    - dF_c/dq: the stiffness of the strand's contact forces as dead loads (contact_load_hessians);
+    - Z: an orthonormal basis of the motions y = K^1/2 dq that keep the strand's **head** contacts with
+      r_N > 0 in place: all three rows of H for a sticking one (||r_T|| < mu r_N), the normal row only for
+      one on the cone boundary (it may slide; the head is a mesh, whose distance has no curvature inside a
+      face); take-off contacts (r_N = 0) block nothing and carry no load.
+    - Strand/strand contacts block nothing here; their forces stay as dead loads on both strands.  This is a
+      **safe bound** for the coupled groom: the coupled Lagrangian Hessian is block diagonal over strands
+      (a contact's constraint x_a(q_a) - x_b(q_b) has no mixed second derivative) and the coupled critical
+      subspace lies inside the product of the per-strand ones, so every strand stable here makes the whole
+      groom stable with every loaded contact sticking.
+
+    Strands that no loaded contact touches keep their isolated ratio (``isolated_ratios`` or computed).
+    Dense per strand (n = 3 N_s <= a few hundred): eigvalsh of the reduced matrix."""
+    S = helix.n_strands
+    forces = np.asarray(forces, dtype=np.float64).reshape(-1, 3)
+    mu = np.broadcast_to(np.asarray(mu, dtype=np.float64), (len(forces),))
+    if isolated_ratios is None:
+        isolated_ratios = stiffness_ratios(helix, stiffness_diag, linear_density, gravity)
+    ratio = np.array(isolated_ratios, dtype=np.float64, copy=True)
+    kind = np.zeros(S, dtype=np.int8)
+    blocked_count = np.zeros(S, dtype=np.int64)
+    loaded_count = np.zeros(S, dtype=np.int64)
+    result = HeldStability(ratio, kind, blocked_count, loaded_count)
+    if contacts is None or len(forces) == 0:
+        return result
+    loaded = np.flatnonzero(forces[:, 0] > 0.0)
+    if len(loaded) == 0:
+        return result
+    strand_a = np.asarray(contacts.strand_a, dtype=np.int64)[loaded]
+    strand_b = np.asarray(contacts.strand_b, dtype=np.int64)[loaded]
+    frames = np.asarray(contacts.frame, dtype=np.float64).reshape(-1, 3, 3)[loaded]
+    world = np.einsum("pji,pj->pi", frames, forces[loaded])
+    on_b = strand_b >= 0
+    point_strand = np.concatenate([strand_a, strand_b[on_b]])
+    point_s = np.concatenate([np.asarray(contacts.s_a, float)[loaded], np.asarray(contacts.s_b, float)[loaded][on_b]])
+    point_force = np.concatenate([world, -world[on_b]])
+    np.add.at(loaded_count, point_strand, 1)
+    strands = np.flatnonzero(loaded_count > 0)
+    kind[strands] = 1
+    # constraint rows: loaded head contacts, 3 rows if sticking, the normal row on the cone boundary
+    head = ~on_b
+    tangential = np.linalg.norm(forces[loaded, 1:], axis=1)
+    sticking = tangential < (1.0 - STICK_SLACK) * mu[loaded] * forces[loaded, 0]
+    head_ids, head_strand, head_stick = loaded[head], strand_a[head], sticking[head]
+    by_strand = np.argsort(head_strand, kind="stable")
+    head_ids, head_strand, head_stick = head_ids[by_strand], head_strand[by_strand], head_stick[by_strand]
+    H = H.tocsr()
+    cols = 3 * helix.flat_offsets()
+    if progress is not None:
+        progress.reset(total=len(strands))
+    hessians = contact_load_hessians(helix, strands, point_strand, point_s, point_force)
+    with threadpool_limits(1, user_api="blas"):
+        for chunk_start in range(0, len(strands), 256):
+            ids = strands[chunk_start:chunk_start + 256]
+            sub = helix.subset(ids)
+            dF = sh.gravity_force_jacobian(sub, linear_density, gravity)
+            K = sh.stiffness(sub, stiffness_diag).reshape(len(ids), -1)
+            for i, s in enumerate(ids):
+                n = 3 * int(sub.n_elements[i])
+                scale = 1.0 / np.sqrt(K[i, :n])
+                A = scale[:, None] * (dF[i, :n, :n] + hessians[chunk_start + i]) * scale[None, :]
+                A = 0.5 * (A + A.T)
+                lo, hi = np.searchsorted(head_strand, [s, s + 1])
+                rows = [3 * c + np.arange(3) if stick else np.array([3 * c])
+                        for c, stick in zip(head_ids[lo:hi], head_stick[lo:hi])]
+                C = None
+                if rows:
+                    rows = np.concatenate(rows)
+                    C = _csr_block(H, rows, cols[s], cols[s] + n) * scale[None, :]
+                    blocked_count[s] = len(rows)
+                ratio[s] = constrained_top_eigenvalue(A, C)
+                if progress is not None:
+                    progress.update(1)
+    return result
+
+
+def constrained_top_eigenvalue(A: np.ndarray, C: np.ndarray | None) -> float:
+    """lambda_max(Z^T A Z), Z an orthonormal basis of null(C) (C None or empty: lambda_max(A)); 0 when the
+    rows block every motion.  The null space from the SVD of C with scipy.linalg.null_space's rank rule;
+    dense eigvalsh (backward stable: exact to round-off of ||A||)."""
+    if C is not None and len(C):
+        _, sv, Vh = np.linalg.svd(C, full_matrices=True)
+        rank = int(np.count_nonzero(sv > (sv.max() if len(sv) else 0.0) * np.finfo(float).eps * max(C.shape)))
+        Z = Vh[rank:].T
         if Z.shape[1] == 0:
             return 0.0
         A = Z.T @ A @ Z
-    return float(np.linalg.eigvalsh(A)[-1])
+    return float(np.linalg.eigvalsh(0.5 * (A + A.T))[-1])

@@ -13,7 +13,7 @@ import sys
 
 import numpy as np
 
-from . import export_cmd, simulate_cmd, view_cmd
+from . import batch_cmd, export_cmd, simulate_cmd, view_cmd
 
 EXIT_OK, EXIT_USER_ERROR, EXIT_NOT_CONVERGED = 0, 1, 2
 EXIT_INTERNAL_ERROR = 3  # an unexpected exception: a bug, reported in one line (GROOM_DEBUG=1: traceback)
@@ -95,6 +95,10 @@ def build_parser() -> argparse.ArgumentParser:
                      help="contacts to account for: none (isolated strands), head, all (head and strand/strand)")
     inv.add_argument("--contact-radius", type=float, default=None,
                      help="contact thickness around each strand axis, in --units (default: see docs/contact.md)")
+    inv.add_argument("--wisp-radius", type=float, default=None, metavar="R",
+                     help="each strand stands for a wisp of hair of radius R (in --units): guide strands of USC-style "
+                          "data; R is then the contact radius, so guides rest on the head and on each other as "
+                          "wisps do (docs/stability.md)")
     inv.add_argument("--snap-roots", action="store_true",
                      help="move each strand so its root lies on the head surface (else the gap is reported)")
     inv.add_argument("--guess", choices=["current", "tip"], default="current",
@@ -122,6 +126,20 @@ def build_parser() -> argparse.ArgumentParser:
     inv.add_argument("--rod-segments", type=int, default=None, metavar="N",
                      help="resolution of the discrete (Cosserat/DER) rest data: N equal segments per strand "
                           "(default: the input's own vertices)")
+    inv.add_argument("--stabilize", choices=["stiffness", "report", "none"], default="stiffness",
+                     help="stable inversion: 'stiffness' (default) multiplies E and G of exactly the strands that are "
+                          "unstable with the contacts that hold them by their certified factor x the margin and "
+                          "solves again; 'report' only reports them; 'none' skips the analysis with contacts "
+                          "(docs/stability.md)")
+    inv.add_argument("--friction-margin", type=float, default=None, metavar="F",
+                     help="the contact forces solved stay in the friction cones of (1 - F) mu, so that they stick "
+                          "with a margin (default 0.1; 0: forces may lie on the cone boundary, where round-off "
+                          "tips them into sliding)")
+    inv.add_argument("--stability-margin", type=float, default=None, metavar="M",
+                     help="stiffened strands get M x their certified factor (default 1.1)")
+    inv.add_argument("--max-stiffness-factor", type=float, default=None, metavar="F",
+                     help="no strand is made more than F x stiffer (default 100); strands that would need more "
+                          "are named in the report")
     inv.add_argument("--format", action="append", choices=["npz", "obj", "json", "usd", "abc", "vtp", "hair"], default=None,
                      help="output formats (repeatable; default npz, obj, json)")
     _add_material_options(inv)
@@ -145,6 +163,7 @@ def build_parser() -> argparse.ArgumentParser:
     simulate_cmd.add_parsers(sub)
     view_cmd.add_parser(sub)
     export_cmd.add_parser(sub)
+    batch_cmd.add_parser(sub, inv)
     return parser
 
 
@@ -302,6 +321,16 @@ def _check_invert_options(args) -> None:
         raise UserError(f"--gamma must be >= 0 and finite, got {args.gamma:g}")
     if not (0 <= args.q0_tolerance < np.inf):
         raise UserError(f"--q0-tolerance must be >= 0 and finite (0: off), got {args.q0_tolerance:g}")
+    if args.wisp_radius is not None and not (0 < args.wisp_radius < np.inf):
+        raise UserError(f"--wisp-radius must be a positive length, got {args.wisp_radius:g}")
+    if args.wisp_radius is not None and args.contact_radius is not None:
+        raise UserError("--wisp-radius sets the contact radius: give one of --wisp-radius and --contact-radius")
+    if args.friction_margin is not None and not (0 <= args.friction_margin < 1):
+        raise UserError(f"--friction-margin must be in [0, 1), got {args.friction_margin:g}")
+    if args.stability_margin is not None and not (1 <= args.stability_margin < np.inf):
+        raise UserError(f"--stability-margin must be >= 1 and finite, got {args.stability_margin:g}")
+    if args.max_stiffness_factor is not None and not (1 <= args.max_stiffness_factor < np.inf):
+        raise UserError(f"--max-stiffness-factor must be >= 1 and finite, got {args.max_stiffness_factor:g}")
 
 
 def _invert_params(args, scale):
@@ -313,10 +342,14 @@ def _invert_params(args, scale):
         material=_material(args), tolerance=DEFAULT_TOLERANCE_M if args.tolerance is None else args.tolerance * scale,
         relative_tolerance=args.relative_tolerance, contacts=args.contacts,
         contact_radius=None if args.contact_radius is None else args.contact_radius * scale,
+        wisp_radius=None if args.wisp_radius is None else args.wisp_radius * scale,
         guess=args.guess, solver=args.solver, solver_tolerance=args.solver_tolerance, max_iterations=args.max_sweeps,
         q0_tolerance=args.q0_tolerance or None, strict=args.strict,
-        snap_roots=args.snap_roots, rod_segments=args.rod_segments,
-        **({} if args.gamma is None else {"gamma": args.gamma}))
+        snap_roots=args.snap_roots, rod_segments=args.rod_segments, stabilize=args.stabilize,
+        **({} if args.gamma is None else {"gamma": args.gamma}),
+        **({} if args.stability_margin is None else {"stability_margin": args.stability_margin}),
+        **({} if args.friction_margin is None else {"friction_margin": args.friction_margin}),
+        **({} if args.max_stiffness_factor is None else {"max_stiffness_factor": args.max_stiffness_factor}))
 
 
 def summary(result, written) -> str:
@@ -327,6 +360,10 @@ def summary(result, written) -> str:
     if "contacts" in r:
         c, s = r["contacts"], r["solve"]
         lines.append(f"  contacts     {c['total']} ({c['strand_head']} head, {c['strand_strand']} strand/strand)")
+        if "wisp" in r:
+            w = r["wisp"]
+            lines.append(f"  wisps        radius {w['radius_m'] * 1e3:.2f} mm (the contact radius), about "
+                         f"{w['fibres_per_strand']:,.0f} fibres per strand")
         polish = f" + {s['polish_sweeps']} Gauss-Seidel polish sweeps" if s.get("polish_sweeps") else ""
         lines.append(f"  solve        {s['solver']}: {s['status']}, {s['iterations']} iterations{polish}, "
                      f"residual {s['residual']:.2e}, cone violation {s['cone_violation']:.1e} N")
@@ -335,17 +372,7 @@ def summary(result, written) -> str:
             lines.append(f"               (Gauss-Seidel first: {f['status']} at residual {f['residual']:.1e} after "
                          f"{f['iterations']} sweeps, then clarabel)")
     lines.append(f"  equilibrium  max relative residual {r['equilibrium']['max_relative_residual']:.2e}")
-    st = r["stability"]
-    if st["unstable_strands"]:
-        lines.append(f"  stability    {st['unstable_strands']} strands unstable in isolation: Young's modulus would "
-                     f"have to be {st['required_young_modulus_factor']:.2f}x larger for all to stand alone")
-        if st.get("unstable_with_contacts"):
-            lines.append(f"               {st['unstable_with_contacts']} of them still unstable when their active contacts "
-                         "hold them: a simulation will move them")
-        elif "unstable_with_contacts" in st:
-            lines.append("               all of them are stable once their active contacts hold them")
-    else:
-        lines.append("  stability    every strand is a stable equilibrium on its own")
+    lines += stability_lines(r["stability"])
     if "roots" in r:
         lines.append(f"  roots        {r['roots']['mode']}: median gap {r['roots']['median_gap_m'] * 1e3:.2f} mm, "
                      f"max {r['roots']['max_gap_m'] * 1e3:.2f} mm")
@@ -354,6 +381,32 @@ def summary(result, written) -> str:
                  + ", ".join(f"{k} {v:.2f}" for k, v in r["timings_s"].items() if k != "total"))
     lines.append("  wrote        " + ", ".join(str(p) for p in written))
     return "\n".join(lines)
+
+
+def stability_lines(st: dict) -> list[str]:
+    """The summary's stability lines: isolated strands with the input material, then the contacts and the
+    stiffening (report.json's stability, docs/outputs.md)."""
+    lines = []
+    if st["unstable_strands"]:
+        lines.append(f"  stability    {st['unstable_strands']} strands unstable in isolation with the input material "
+                     f"(up to {st['required_young_modulus_factor']:.2f}x too soft to stand alone)")
+    else:
+        lines.append("  stability    every strand is a stable equilibrium on its own")
+    stab = st.get("stabilization")
+    if stab is None:
+        return lines
+    if stab["stiffened_strands"]:
+        median = stab["median_stiffness_factor_of_stiffened"]
+        lines.append(f"  stiffened    {stab['stiffened_strands']} strands (E and G x{median:.2f} median, "
+                     f"x{stab['max_stiffness_factor']:.2f} max) so that the contacts and their stiffness "
+                     "hold them: per-strand moduli in rest.npz")
+    if stab["unstable_strands"]:
+        advice = ("they will move in a simulation" if stab["mode"] == "stiffness"
+                  else "--stabilize stiffness would stiffen them")
+        lines.append(f"  unstable     {stab['unstable_strands']} strands even with the contacts that hold them: {advice}")
+    elif st["unstable_strands"]:
+        lines.append("               every strand is stable with the contacts and stiffness written")
+    return lines
 
 
 def root_notes(roots: dict) -> list[str]:
@@ -383,6 +436,11 @@ def cmd_example(args) -> int:
 COMMANDS = {"invert": cmd_invert, "info": cmd_info, "example": cmd_example,
             "view": view_cmd.cmd_view, "export": export_cmd.cmd_export,
             "simulate": simulate_cmd.cmd_simulate, "check": simulate_cmd.cmd_check}
+COMMANDS["batch"] = batch_cmd.cmd_batch
+
+
+def _one_line_warning(message, category, filename, lineno, file=None, line=None):
+    print(f"groom: warning: {message}", file=sys.stderr if file is None else file)
 
 
 # library advice -> the command-line flag that does it
@@ -408,10 +466,6 @@ def _join_negative_up(argv: list) -> list:
             out.append(argv[i])
             i += 1
     return out
-
-
-def _one_line_warning(message, category, filename, lineno, file=None, line=None):
-    print(f"groom: warning: {message}", file=sys.stderr if file is None else file)
 
 
 def main(argv=None) -> int:

@@ -33,7 +33,7 @@ def result_arrays(result) -> dict:
         "curvatures": helix.to_flat(helix.curvatures),
         "rest_curvatures": helix.to_flat(result.rest_curvatures),
         "fit_max_error": result.fit_max_error,
-        "stiffness_ratio": result.stiffness_ratio if result.stiffness_ratio is not None else np.zeros(0),
+        "stiffness_ratio": np.zeros(0),
         "young_modulus": np.array(mat.young_modulus),
         "shear_modulus": np.array(mat.G),
         "radius": np.array(mat.radius),
@@ -41,6 +41,19 @@ def result_arrays(result) -> dict:
         "friction": np.array(mat.friction),
         "gravity": np.asarray(result.gravity, dtype=np.float64),
     }
+    factor = getattr(result, "stiffness_factor", None)
+    factor = np.ones(helix.n_strands) if factor is None else np.asarray(factor, dtype=np.float64)
+    held = getattr(result, "held_ratio", None)
+    # per strand: the stable inversion may stiffen strands (stabilize.py); the ratios are relative to the moduli
+    # written (a ratio rho with the input material is rho / f_s with E_s = f_s E): < 1 is stable
+    arrays.update({
+        "stiffness_factor": factor,
+        "strand_young_modulus": mat.young_modulus * factor,
+        "strand_shear_modulus": mat.G * factor,
+        "held_stiffness_ratio": np.asarray(held, dtype=np.float64) / factor if held is not None else np.zeros(0),
+    })
+    if result.stiffness_ratio is not None:
+        arrays["stiffness_ratio"] = np.asarray(result.stiffness_ratio, dtype=np.float64) / factor
     c = result.contacts
     m = 0 if c is None else len(c.strand_a)
     arrays.update({

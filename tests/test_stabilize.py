@@ -1,0 +1,278 @@
+"""Stable inversion (issue 14): stability with the contacts that hold a strand, and the stiffening.
+
+- the dead-load stiffness d(J^T f)/dq against second differences of the load potential f . C(s; q)
+  (positions only, an independent route);
+- the held ratios against a dense reference built here (dense gravity Hessian, second-difference load
+  Hessian, scipy's null space of the dense constraint rows);
+- no contacts: the held criterion equals the isolated one (1e-9);
+- the forward simulator: a strand stiffened by its factor comes back after a kick, one at 0.9 x its
+  certified factor falls; the stabilised inversion is still an exact equilibrium and rest.npz carries
+  the per-strand moduli.
+"""
+
+import numpy as np
+import pytest
+import scipy.linalg
+import trimesh
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.spatial.transform import Rotation
+
+from groomtool import Groom, Material
+from groomtool.contact.jacobian import contact_jacobian
+from groomtool.invert import InversionParams, invert_groom
+from groomtool.rods import superhelix as sh
+from groomtool.simulate import SimulationParams, Simulator
+from groomtool.stability import contact_load_hessians, held_stiffness_ratios, stiffness_ratios
+from groomtool.stabilize import stiffening_step
+
+from test_invert_contacts import SPHERE_R, _independent_cvxpy, _w_scale, draped_strand
+
+MAT = Material()
+G = np.array([0.0, -9.81, 0.0])
+
+
+def random_helix(seed, n_strands=3, max_elements=6):
+    rng = np.random.default_rng(seed)
+    n = rng.integers(1, max_elements + 1, n_strands)
+    lengths = np.zeros((n_strands, max_elements))
+    q = np.zeros((n_strands, max_elements, 3))
+    for i, k in enumerate(n):
+        lengths[i, :k] = rng.uniform(0.005, 0.04, k)
+        q[i, :k] = rng.normal(size=(k, 3)) * 30.0
+    return sh.SuperHelix(0.05 * rng.normal(size=(n_strands, 3)),
+                         Rotation.random(n_strands, random_state=seed).as_matrix(), lengths, q, n)
+
+
+def load_potential_hessian(helix, strand, s, f, h=1e-4):
+    """d^2/dq^2 of sum_p f_p . C(s_p; q) for one strand by second differences of positions."""
+    sub = helix.subset([strand])
+    n = 3 * int(sub.n_elements[0])
+    q0 = sub.curvatures.copy()
+
+    def phi(dq):
+        q = q0.copy()
+        q[0, :n // 3] += dq.reshape(-1, 3)
+        x = sh.evaluate_positions(sub.with_curvatures(q), np.zeros(len(s), np.int64), s)
+        return float(np.sum(x * f))
+
+    steps = h / sub.lengths[0, :n // 3].repeat(3)
+    out = np.empty((n, n))
+    for i in range(n):
+        for j in range(i, n):
+            ei, ej = np.zeros(n), np.zeros(n)
+            ei[i], ej[j] = steps[i], steps[j]
+            v = (phi(ei + ej) - phi(ei - ej) - phi(-ei + ej) + phi(-ei - ej)) / (4 * steps[i] * steps[j])
+            out[i, j] = out[j, i] = v
+    return out
+
+
+@given(seed=st.integers(0, 10_000), loads=st.integers(1, 4))
+@settings(max_examples=12, deadline=None)
+def test_contact_load_hessian_is_the_second_derivative_of_the_load_potential(seed, loads):
+    helix = random_helix(seed)
+    rng = np.random.default_rng(seed + 1)
+    strand = np.repeat(np.arange(helix.n_strands), loads)
+    s = rng.uniform(0, 1, len(strand)) * helix.strand_lengths[strand]
+    f = rng.normal(size=(len(strand), 3)) * 1e-4
+    ours = contact_load_hessians(helix, np.arange(helix.n_strands), strand, s, f, chunk_dofs=20)
+    for k in range(helix.n_strands):
+        mine = strand == k
+        ref = load_potential_hessian(helix, k, s[mine], f[mine], h=1e-3)
+        scale = np.abs(ref).max()
+        # the reference's own round-off: eps |phi| / step^2 (second differences of a potential)
+        phi = np.abs(f[mine]).sum() * (np.abs(helix.root_positions[k]).max() + helix.strand_lengths[k])
+        noise = 64 * np.finfo(float).eps * phi / (1e-3 / helix.lengths[k, :helix.n_elements[k]].min()) ** 2
+        np.testing.assert_allclose(ours[k], ref, atol=1e-5 * scale + noise, rtol=0)
+        np.testing.assert_allclose(ours[k], ours[k].T, atol=1e-14 * scale)
+
+
+def test_stiffening_step_raises_only_the_unstable_strands():
+    ratio = np.array([0.5, 2.0, 300.0, 1.0])
+    factor = np.array([1.0, 1.0, 1.0, 1.5])
+    new = stiffening_step(ratio, factor, margin=1.1, cap=100.0)
+    np.testing.assert_allclose(new, [1.0, 2.2, 100.0, 1.5])
+    assert stiffening_step(ratio, new, margin=1.1, cap=100.0) is None  # 300 stays unstable at the cap
+    assert stiffening_step(np.array([0.2]), np.array([1.0])) is None
+
+
+@pytest.fixture(scope="module")
+def sphere():
+    return trimesh.creation.icosphere(subdivisions=4, radius=SPHERE_R)
+
+
+def _params(**kw):
+    base = dict(material=MAT, tolerance=2e-4, contacts="all", contact_radius=5e-4, solver="clarabel",
+                solver_tolerance=1e-10, discrete_rest_data=False)
+    base.update(kw)
+    return InversionParams(**base)
+
+
+@pytest.fixture(scope="module")
+def draped(sphere):
+    strands = [draped_strand(0.3, 2e-4, azimuth=a) for a in (0.0, 0.5, 1.0)]
+    strands.append(draped_strand(0.35, 2e-4 + 6e-4, azimuth=0.02, length=0.25))
+    groom = Groom.from_strands(strands, source="draped")
+    return groom, invert_groom(groom, head=sphere, params=_params(stabilize="report"))
+
+
+def test_held_ratios_equal_a_dense_reference(draped):
+    """rho = lambda_max(Z^T K^-1/2 (dF/dq + dF_c/dq) K^-1/2 Z), built here from dense pieces."""
+    _, res = draped
+    helix, g, c, r = res.helix, res.gravity, res.contacts, res.forces
+    H = contact_jacobian(helix, c)
+    mu = np.full(len(r), MAT.friction)
+    held = held_stiffness_ratios(helix, MAT.stiffness_diag, MAT.linear_density, g, c, r, H, mu)
+    assert np.any(held.kind == 1)
+    Hd = H.toarray()
+    cols = 3 * helix.flat_offsets()
+    world = np.einsum("pji,pj->pi", c.frame, r)
+    loaded = r[:, 0] > 0
+    for s in np.flatnonzero(held.kind == 1):
+        n = 3 * int(helix.n_elements[s])
+        dF = sh._gravity_force_jacobian_reference(helix.subset([s]), MAT.linear_density, g)[0, :n, :n]
+        on_a = loaded & (c.strand_a == s)
+        on_b = loaded & (c.strand_b == s)
+        arc = np.concatenate([c.s_a[on_a], c.s_b[on_b]])
+        f = np.concatenate([world[on_a], -world[on_b]])
+        sub = helix.subset([s])
+        dFc = load_potential_hessian(sub, 0, arc, f, h=1e-3)
+        scale = 1.0 / np.sqrt(sh.stiffness(sub, MAT.stiffness_diag).reshape(-1)[:n])
+        A = scale[:, None] * (dF + dFc) * scale[None, :]
+        norm = np.linalg.norm(A, 2)
+        rows = []
+        for i in np.flatnonzero(loaded & (c.strand_a == s) & (c.strand_b < 0)):
+            stick = np.linalg.norm(r[i, 1:]) < (1 - 1e-6) * MAT.friction * r[i, 0]
+            rows += [3 * i, 3 * i + 1, 3 * i + 2] if stick else [3 * i]
+        if rows:
+            Z = scipy.linalg.null_space(Hd[rows, cols[s]:cols[s] + n] * scale[None, :])
+            A = Z.T @ A @ Z
+        ref = np.linalg.eigvalsh(0.5 * (A + A.T))[-1]
+        assert held.ratio[s] == pytest.approx(ref, rel=1e-5, abs=1e-6 * norm), s
+    # the head contacts hold some strand that is unstable alone
+    iso = stiffness_ratios(helix, MAT.stiffness_diag, MAT.linear_density, g)
+    assert np.any(held.ratio < iso - 1e-3 * np.abs(iso))
+
+
+def test_without_contacts_the_held_criterion_is_the_isolated_one():
+    """A strand/strand contact with a negligible force blocks nothing and loads nothing: the dense route
+    must give the certified isolated ratio (1e-9)."""
+    from groomtool.contact import Contacts, contact_frames
+
+    helix = random_helix(7, n_strands=2, max_elements=8)
+    iso = stiffness_ratios(helix, MAT.stiffness_diag, MAT.linear_density, G)
+    x, R = sh.evaluate(helix, np.array([0]), np.array([0.5 * helix.strand_lengths[0]]))
+    normal = np.array([[0.0, 0.0, 1.0]])
+    c = Contacts(np.array([0]), np.array([0.5 * helix.strand_lengths[0]]), np.array([1]), np.array([0.0]), x, x,
+                 normal, contact_frames(normal, R[:, :, 0]), np.array([0.0]), 5e-5)
+    H = contact_jacobian(helix, c)
+    held = held_stiffness_ratios(helix, MAT.stiffness_diag, MAT.linear_density, G, c, np.array([[1e-300, 0, 0]]), H,
+                                 MAT.friction, isolated_ratios=iso)
+    assert held.kind[0] == 1 and held.kind[1] == 1  # went through the dense route
+    np.testing.assert_allclose(held.ratio, iso, rtol=1e-9)
+
+
+def test_stabilised_inversion_is_exact_and_stable(draped, sphere, tmp_path):
+    groom, report_only = draped
+    assert report_only.report["stability"]["stabilization"]["stiffened_strands"] == 0
+    res = invert_groom(groom, head=sphere, params=_params())
+    stab = res.report["stability"]["stabilization"]
+    held = res.held_ratio
+    assert stab["unstable_strands"] == 0 and np.all(held < res.stiffness_factor)
+    stiffened = res.stiffness_factor > 1
+    assert stab["stiffened_strands"] == int(stiffened.sum())
+    # exactly the strands that need it: the others keep the input material
+    np.testing.assert_array_equal(res.stiffness_factor[held < 1], 1.0)
+    assert res.report["equilibrium"]["max_relative_residual"] < 1e-8
+    # the re-solved forces are the optimum of the inverse problem with the new K (independent cvxpy)
+    _, obj_ref = _independent_cvxpy(res, res.params.gamma * _w_scale(res))
+    assert res.report["solve"]["objective"] == pytest.approx(obj_ref, rel=1e-7)
+    res.save(tmp_path / "out")
+    arrays = np.load(tmp_path / "out" / "rest.npz")
+    np.testing.assert_allclose(arrays["strand_young_modulus"], MAT.young_modulus * res.stiffness_factor)
+    np.testing.assert_allclose(arrays["strand_shear_modulus"], MAT.G * res.stiffness_factor)
+
+
+def standing_strand(length=0.16, n=6):
+    """A straight strand rising vertically (y up) from the origin, beyond Greenhill's 9 cm."""
+    frame = np.stack([[0.0, 1.0, 0], [1, 0, 0], [0, 0, -1.0]], axis=1)
+    return sh.SuperHelix(np.zeros((1, 3)), frame[None], np.full((1, n), length / n), np.zeros((1, n, 3)))
+
+
+def kicked_drift(factor, seconds=2.0):
+    """Max tip drift over the last half of a simulation from the inverted standing strand with stiffness
+    factor ``factor`` and a small kick."""
+    helix = standing_strand()
+    K = sh.stiffness(helix, MAT.stiffness_diag) * factor
+    rest = helix.curvatures  # straight and vertical: gravity has no moment, q0 = q
+    rates = np.zeros_like(helix.curvatures)
+    rates[0, :, 1] = 0.05  # a small bending kick (1/(m s))
+    sim = Simulator(helix, rest, MAT, G, params=SimulationParams(contacts="none"), initial_rates=rates, stiffness=K)
+    tip0 = sim.tips()
+    drift = []
+    for _ in range(int(round(seconds / sim.params.dt))):
+        sim.step()
+        drift.append(float(np.linalg.norm(sim.tips() - tip0)))
+    return np.array(drift)
+
+
+def test_a_stiffened_strand_comes_back_and_one_below_its_factor_falls():
+    helix = standing_strand()
+    rho = stiffness_ratios(helix, MAT.stiffness_diag, MAT.linear_density, G)[0]
+    assert rho > 1.5  # unstable with the input material
+    factor = stiffening_step(np.array([rho]), np.ones(1))[0]
+    assert factor == pytest.approx(1.1 * rho)
+    stable = kicked_drift(factor)
+    below = kicked_drift(0.9 * rho)
+    n = len(stable)
+    assert stable[n // 2:].max() < 1.5 * stable[:n // 2].max()  # oscillates, does not grow
+    assert stable.max() < 1e-3
+    assert below[-1] > 1e-3 and below[-1] > 10 * stable.max()  # falls
+
+
+def test_wisp_radius_is_the_contact_radius_and_keeps_the_fibre_curvatures(sphere):
+    """A strand 3 mm above the sphere touches nothing as a fibre and rests on it as a 4 mm wisp; a loose
+    wisp scales mass and stiffness together, so a strand without contacts keeps a fibre's rest curvatures."""
+    hovering = draped_strand(0.3, 3e-3)
+    far = draped_strand(0.3, 2e-4) + np.array([0.0, 0.0, 0.5])
+    groom = Groom.from_strands([hovering, far], source="wisps")
+    fibre = invert_groom(groom, head=sphere, params=_params(contact_radius=None, contacts="head"))
+    wisp = invert_groom(groom, head=sphere, params=_params(contact_radius=None, wisp_radius=4e-3, contacts="head"))
+    assert not np.any(fibre.contacts.strand_a == 0)
+    assert np.any(wisp.contacts.strand_a == 0) and wisp.contacts.radius == 4e-3
+    assert wisp.report["wisp"]["fibres_per_strand"] == pytest.approx(0.5 * (4e-3 / MAT.radius) ** 2)
+    assert wisp.report["equilibrium"]["max_relative_residual"] < 1e-8
+    np.testing.assert_allclose(wisp.rest_curvatures[1], fibre.rest_curvatures[1], rtol=1e-12)
+    with pytest.raises(ValueError, match="not both"):
+        InversionParams(contact_radius=1e-3, wisp_radius=4e-3)
+
+
+def test_simulate_api_uses_the_per_strand_moduli(tmp_path):
+    """groomtool.simulate on a stabilised result (in memory and saved) runs with the stiffened K."""
+    from groomtool.api import simulate
+
+    pts = np.stack([np.zeros(40), np.linspace(0, 0.16, 40), np.zeros(40)], axis=1)  # standing, 16 cm
+    bent = pts + np.stack([0.004 * np.sin(np.linspace(0, 3, 40)), np.zeros(40), np.zeros(40)], axis=1)
+    groom = Groom.from_strands([pts + [0.01, 0, 0], bent], source="standing")
+    res = invert_groom(groom, params=InversionParams(material=MAT, contacts="none", discrete_rest_data=False))
+    assert np.all(res.stiffness_factor > 1)
+    res.save(tmp_path / "out")
+    for source in (res, tmp_path / "out"):
+        seen = []
+        simulate(source, seconds=2 / 240, contacts="none", callback=lambda sim, _: seen.append(sim.K))
+        np.testing.assert_allclose(seen[0], res.stiffness(), rtol=1e-12)
+
+
+def test_forces_keep_a_friction_margin(draped):
+    """The inverse problem keeps every force in the cone of (1 - margin) mu: strictly inside the friction
+    cone, so the simulator's contacts stick instead of sitting on the edge of sliding."""
+    _, res = draped
+    r = res.forces
+    margin = res.params.friction_margin
+    assert margin == 0.1
+    loaded = r[:, 0] > 1e-9 * np.abs(r).max()
+    tangential = np.linalg.norm(r[:, 1:], axis=1)
+    assert np.all(tangential[loaded] <= (1 - margin) * MAT.friction * r[loaded, 0] * (1 + 1e-7))
+    assert np.any(tangential[loaded] > 0.5 * (1 - margin) * MAT.friction * r[loaded, 0])  # friction is used
+    with pytest.raises(ValueError, match="friction margin"):
+        InversionParams(friction_margin=1.0)
