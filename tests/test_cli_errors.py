@@ -161,3 +161,16 @@ def test_unexpected_exception_is_one_line(example, capsys, monkeypatch):
     monkeypatch.setenv("GROOM_DEBUG", "1")
     with pytest.raises(RuntimeError):
         main(["info", str(example[0])])
+
+
+@pytest.mark.parametrize("command, options, needle", [
+    ("simulate", ["--air-drag", "-1"], "--air-drag"),
+    ("simulate", ["--damping", "nan"], "--damping"),
+    ("check", ["--contact-radius", "0"], "--contact-radius"),
+])
+def test_bad_simulation_options_are_one_line(result_dir, tmp_path, capsys, command, options, needle):
+    argv = [command, str(result_dir), "--seconds", "0.01", "--dt", "0.01", "-q", *options]
+    if command == "simulate":
+        argv += ["-o", str(tmp_path / "frames")]
+    assert main(argv) == EXIT_USER_ERROR
+    one_line_error(capsys, needle)

@@ -76,8 +76,14 @@ def add_parsers(subparsers) -> None:
 
 
 def _params(args):
+    from ..groom import GroomError
     from ..simulate import SimulationParams
 
+    for flag, value in (("--air-drag", args.air_drag), ("--damping", args.damping)):
+        if not (0 <= value < np.inf):
+            raise GroomError(f"{flag} must be >= 0 and finite, got {value:g}")
+    if args.contact_radius is not None and not (0 < args.contact_radius < np.inf):
+        raise GroomError(f"--contact-radius must be a positive length, got {args.contact_radius:g}")
     return SimulationParams(dt=args.dt, contacts=args.contacts or "none", contact_radius=args.contact_radius,
                             air_drag=args.air_drag, mass_damping=args.damping)
 
