@@ -53,12 +53,16 @@ def _params(**kw):
     return InversionParams(**base)
 
 
+def draped_groom():
+    """Three strands draped over the sphere, and a fourth crossing over the first, lying on it."""
+    strands = [draped_strand(0.3, 2e-4, azimuth=a) for a in (0.0, 0.5, 1.0)]
+    strands.append(draped_strand(0.35, 2e-4 + 6e-4, azimuth=0.02, length=0.25))
+    return Groom.from_strands(strands, source="draped")
+
+
 @pytest.fixture(scope="module")
 def draped(sphere):
-    strands = [draped_strand(0.3, 2e-4, azimuth=a) for a in (0.0, 0.5, 1.0)]
-    # a fourth strand crossing over the first, lying on it
-    strands.append(draped_strand(0.35, 2e-4 + 6e-4, azimuth=0.02, length=0.25))
-    groom = Groom.from_strands(strands, source="draped")
+    groom = draped_groom()
     return groom, invert_groom(groom, head=sphere, params=_params())
 
 

@@ -26,7 +26,8 @@ from groomtool.simulate import SimulationParams, Simulator
 from groomtool.stability import contact_load_hessians, held_stiffness_ratios, stiffness_ratios
 from groomtool.stabilize import stiffening_step
 
-from test_invert_contacts import SPHERE_R, _independent_cvxpy, _w_scale, draped_strand
+from test_invert_contacts import SPHERE_R, _independent_cvxpy, _w_scale, draped_groom, draped_strand
+from test_invert_contacts import _params as _contact_params
 
 MAT = Material()
 G = np.array([0.0, -9.81, 0.0])
@@ -102,17 +103,14 @@ def sphere():
 
 
 def _params(**kw):
-    base = dict(material=MAT, tolerance=2e-4, contacts="all", contact_radius=5e-4, solver="clarabel",
-                solver_tolerance=1e-10, discrete_rest_data=False)
-    base.update(kw)
-    return InversionParams(**base)
+    """test_invert_contacts' parameters, with the stabilisation on (its default)."""
+    return _contact_params(**{"stabilize": "stiffness", **kw})
 
 
 @pytest.fixture(scope="module")
 def draped(sphere):
-    strands = [draped_strand(0.3, 2e-4, azimuth=a) for a in (0.0, 0.5, 1.0)]
-    strands.append(draped_strand(0.35, 2e-4 + 6e-4, azimuth=0.02, length=0.25))
-    groom = Groom.from_strands(strands, source="draped")
+    """test_invert_contacts' draped groom, inverted with the stabilisation reporting only."""
+    groom = draped_groom()
     return groom, invert_groom(groom, head=sphere, params=_params(stabilize="report"))
 
 
