@@ -100,6 +100,7 @@ class SimulationParams:
     solver: str = "auto"
     solver_tolerance: float = 1e-8
     max_iterations: int = 2000
+    refresh_warm_start: bool = True  # one sweep from an accepted warm start (solve_contacts)
 
     def __post_init__(self):
         if self.contacts not in CONTACT_MODES:
@@ -362,6 +363,16 @@ class Simulator:
         r = system.r0
         err = error(r)
         iterations, status = 0, "warm_start"
+        if err <= p.solver_tolerance and p.refresh_warm_start:
+            # one sweep even so: an accepted warm start is a force held constant, not a constraint, and a
+            # strand held by dead loads alone can be unstable (the round-off drift then grows until the
+            # residual exceeds the tolerance); the sweep re-imposes every contact's law on the current b
+            res = solve_contact_problem(problem, law="coulomb", method="gs", tol=0.0, max_iter=1, r0=r,
+                                        scale=scale)
+            r1 = np.asarray(res.r)
+            err1 = error(r1)
+            if err1 <= p.solver_tolerance:
+                r, err, iterations, status = r1, err1, 1, "warm_start_swept"
         if not err <= p.solver_tolerance:
             res = solve_contact_problem(problem, law="coulomb", method=p.solver, tol=p.solver_tolerance,
                                         max_iter=p.max_iterations, r0=r, scale=scale)
