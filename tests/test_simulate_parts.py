@@ -13,6 +13,7 @@ from hypothesis import strategies as st
 
 from groomtool.check import check_groom, choose_strands, load_inverted
 from groomtool.invert import InversionParams, invert_groom
+import dynamics_reference as ref
 from groomtool.material import Material
 from groomtool.rods import superhelix as sh
 from groomtool.simulate import SimulationParams, Simulator, simulate
@@ -65,6 +66,41 @@ def test_factor_step_matrix_matches_the_dense_reference(seed, unstable):
     got = chol @ np.swapaxes(chol, -1, -2)
     assert np.abs(got - ref).max() <= 1e-10 * np.abs(ref).max()
     assert np.allclose(np.triu(chol, 1), 0.0)
+
+
+def test_kept_step_corrections_are_the_fresh_ones_at_rest_and_bound_every_mode():
+    """A kept correction reproduces the fresh factor when nothing changed, is reused while A/2 + B + C stays
+    positive definite (no mode's step factor below 1/2), and is dropped once the strand is stable."""
+    rng = np.random.default_rng(11)
+    m = 12
+    X = rng.normal(size=(m, m))
+    A = (X @ X.T + m * np.eye(m))[None]
+    Y = rng.normal(size=(m, m))
+    B = (-2.0 * m * (Y + Y.T) / 2.0)[None]
+    n_elements = np.array([m // 3])
+    corrections = [None]
+    fresh, modified = factor_step_matrix(A, B, n_elements)
+    assert modified == 1
+    first, _ = factor_step_matrix(A, B, n_elements, corrections)
+    assert corrections[0] is not None and np.allclose(first, fresh, rtol=0, atol=1e-14 * np.abs(fresh).max())
+    kept = corrections[0].copy()
+    again, modified = factor_step_matrix(A, B, n_elements, corrections)
+    assert modified == 1 and np.array_equal(corrections[0], kept)  # the same C: no new decomposition
+    assert np.allclose(again, first, rtol=0, atol=1e-13 * np.abs(first).max())
+    # a small drift: the kept C is reused and still bounds every mode
+    B2 = B * 1.01
+    drifted, _ = factor_step_matrix(A, B2, n_elements, corrections)
+    assert np.array_equal(corrections[0], kept)
+    Mhat = drifted[0] @ drifted[0].T
+    assert np.allclose(Mhat, A[0] + B2[0] + kept, rtol=0, atol=1e-12 * np.abs(Mhat).max())
+    L = np.linalg.cholesky(A[0])
+    Li = np.linalg.inv(L)
+    assert np.linalg.eigvalsh(Li @ Mhat @ Li.T).min() > 0.5
+    # a large change: decomposed anew; a stable strand: correction dropped
+    factor_step_matrix(A, 3.0 * B, n_elements, corrections)
+    assert not np.array_equal(corrections[0], kept)
+    _, modified = factor_step_matrix(A, 0.0 * B, n_elements, corrections)
+    assert modified == 0 and corrections[0] is None
 
 
 def test_cho_inverse_matches_the_triangular_solves():
@@ -270,16 +306,16 @@ def batched_mass_reference(helix, inertia, order=4):
     from groomtool.rods import dynamics as dyn
 
     kin = sh.kinematics(helix)
-    pts = dyn.element_points(helix, kin, order)
+    pts = ref.element_points(helix, kin, order)
     S, N = helix.lengths.shape
     rhoS = inertia.linear
-    II = dyn.world_inertia(pts, inertia)
+    II = ref.world_inertia(pts, inertia)
     w = pts.w[..., None, None]
-    B, Theta = dyn._upstream_blocks(helix, kin)
-    m0 = dyn._suffix_beyond(helix.lengths)[..., None, None]
-    m1 = dyn._suffix_beyond(np.einsum("snq,snqa->sna", pts.w, pts.x))
-    m2 = dyn._suffix_beyond(np.einsum("snq,snqa,snqb->snab", pts.w, pts.x, pts.x))
-    IId = dyn._suffix_beyond(np.sum(w * II, axis=2))
+    B, Theta = ref._upstream_blocks(helix, kin)
+    m0 = ref._suffix_beyond(helix.lengths)[..., None, None]
+    m1 = ref._suffix_beyond(np.einsum("snq,snqa->sna", pts.w, pts.x))
+    m2 = ref._suffix_beyond(np.einsum("snq,snqa,snqb->snab", pts.w, pts.x, pts.x))
+    IId = ref._suffix_beyond(np.sum(w * II, axis=2))
     E = np.sum(w * pts.J_own, axis=2)
     G = np.sum(w * (sh.skew(pts.x) @ pts.J_own), axis=2)
     Gr = np.sum(w * (II @ pts.Jw_own), axis=2)
@@ -321,6 +357,34 @@ def test_mass_matrix_kernel_matches_the_batched_assembly(seed, n, scale):
     ref = batched_mass_reference(helix, inertia)
     assert np.abs(M - ref).max() <= 1e-10 * np.abs(ref).max()
     assert np.abs(M - np.swapaxes(M, -1, -2)).max() <= 1e-12 * np.abs(M).max()
+
+
+@settings(max_examples=20, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), n=st.integers(1, 9), scale=st.floats(0.0, 60.0), moving=st.booleans())
+def test_inertia_kernel_matches_the_numpy_quadrature(seed, n, scale, moving):
+    """The compiled one-pass M and A against the vectorised numpy version over every Gauss point."""
+    from groomtool.rods import dynamics as dyn
+
+    rng = np.random.default_rng(seed)
+    S = 3
+    counts = rng.integers(1, n + 1, size=S)
+    lengths = rng.uniform(0.002, 0.03, size=(S, n)) * (np.arange(n)[None, :] < counts[:, None])
+    q = rng.normal(size=(S, n, 3)) * scale * (lengths > 0)[..., None]
+    frames = np.stack([frame(rng.normal(size=3), rng.normal(size=3)) for _ in range(S)])
+    helix = sh.SuperHelix(rng.normal(size=(S, 3)) * 0.05, frames, lengths, q, counts)
+    inertia = dyn.Inertia(0.01, (3e-3, 1e-3, 2e-3))
+    rates = rng.normal(size=q.shape) * (lengths > 0)[..., None]
+    motion = None
+    if moving:
+        motion = {key: rng.normal(size=(S, 3)) for key in ("root_velocity", "root_angular_velocity",
+                                                            "root_acceleration", "root_angular_acceleration")}
+    M, A = dyn.inertia_terms(helix, inertia, rates=rates, order=5, root_motion=motion)
+    M_ref = ref.mass_matrix_numpy(helix, inertia, order=5)
+    A_ref = ref.velocity_terms_numpy(helix, rates, inertia, order=5, root_motion=motion)
+    assert np.abs(M - M_ref).max() <= 1e-10 * np.abs(M_ref).max()
+    assert np.abs(A - A_ref).max() <= 1e-10 * max(np.abs(A_ref).max(), 1e-300)
+    assert np.array_equal(dyn.mass_matrix(helix, inertia, order=5), M)
+    assert np.array_equal(dyn.velocity_terms(helix, rates, inertia, order=5, root_motion=motion), A)
 
 
 def test_subset_of_touching_strands_starts_in_equilibrium(tmp_path):

@@ -101,6 +101,7 @@ class SimulationParams:
     solver_tolerance: float = 1e-8
     max_iterations: int = 2000
     refresh_warm_start: bool = True  # one sweep from an accepted warm start (solve_contacts)
+    keep_step_corrections: bool = True  # reuse a modified strand's step-matrix correction (factor_step_matrix)
 
     def __post_init__(self):
         if self.contacts not in CONTACT_MODES:
@@ -208,6 +209,7 @@ class Simulator:
         self.timings: dict[str, float] = {}
         self.modified_strands = 0  # strand-steps whose step matrix was modified (factor_step_matrix)
         self.clamped_strands = 0  # strand-steps whose rates were scaled down (_limit_rotation)
+        self._corrections = [None] * helix.n_strands if self.params.keep_step_corrections else None
         self._contacts_on = self.params.contacts == "all" or (self.params.contacts == "head" and head is not None)
         self._radius = self.params.contact_radius
         self.tracker: ContactTracker | None = None
@@ -252,13 +254,12 @@ class Simulator:
         pose = self.motion.pose(st.time)
         helix = sh.SuperHelix(pose.roots, pose.frames, self.lengths, st.curvatures, self.n_elements)
         kin = sh.kinematics(helix)
-        pts = dyn.element_points(helix, kin, p.quadrature_order)
-        M = dyn.mass_matrix(helix, self.inertia, kin, points=pts)
-        F = sh.gravity_force(helix, self.inertia.linear, self.gravity, kin)
-        if p.velocity_terms or pose.moving:
-            A = dyn.velocity_terms(helix, st.rates, self.inertia, kin, points=pts, root_motion=pose.root_motion)
-        else:
+        with_A = p.velocity_terms or pose.moving
+        M, A = dyn.inertia_terms(helix, self.inertia, kin, rates=st.rates if with_A else None,
+                                 order=p.quadrature_order, root_motion=pose.root_motion)
+        if A is None:
             A = 0.0
+        F = sh.gravity_force(helix, self.inertia.linear, self.gravity, kin)
         t0 = self._time("dynamics", t0)
 
         S, N = self.lengths.shape
@@ -278,7 +279,7 @@ class Simulator:
         t0 = self._time("assembly", t0)
         if p.implicit_gravity:
             dF = sh.gravity_force_jacobian(helix, self.inertia.linear, self.gravity, kin)
-            chol, modified = factor_step_matrix(Mhat, -h * h * dF, self.n_elements)
+            chol, modified = factor_step_matrix(Mhat, -h * h * dF, self.n_elements, self._corrections)
             self.modified_strands += modified
         else:
             chol = factor_spd(Mhat, self.n_elements)

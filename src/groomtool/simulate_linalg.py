@@ -41,15 +41,26 @@ def modified_step_matrix(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return 0.5 * (m + m.T)
 
 
-def factor_step_matrix(A: np.ndarray, B: np.ndarray, n_elements: np.ndarray) -> tuple[np.ndarray, int]:
+def _stable_enough(a: np.ndarray, b: np.ndarray) -> bool:
+    """A/2 + B positive definite: every mode's step factor 1 + lambda (B v = lambda A v) exceeds 1/2."""
+    return _cholesky(0.5 * a + b) is not None
+
+
+def factor_step_matrix(A: np.ndarray, B: np.ndarray, n_elements: np.ndarray,
+                       corrections: list | None = None) -> tuple[np.ndarray, int]:
     """Cholesky factors of Mhat = A + B per strand, A = M + h^2 K + ... (SPD), B = -h^2 dF/dq.
 
     Where A/2 + B is positive definite (every mode's step factor 1 + lambda >= 1/2, lambda the
     eigenvalues of B relative to A) Mhat = A + B: gravity is linearly implicit.  Elsewhere a mode of
     the potential is unstable enough that 1 + lambda would approach or cross 0 (amplification
-    1 / (1 + lambda) unbounded): Mhat = modified_step_matrix(A, B).  A, B (S, n, n) padded (A's
-    padding is the identity, B's zero); returns the factors (S, n, n) and the number of strands
-    whose step matrix was modified.
+    1 / (1 + lambda) unbounded): Mhat = A + B + C with C = modified_step_matrix(A, B) - A - B.
+
+    ``corrections`` (a list of S entries, None or C, updated in place) keeps each strand's C between
+    steps: a kept C is used again as long as A/2 + B + C stays positive definite (the same bound on
+    every mode's step factor as for an unmodified strand), so the eigendecomposition is only redone
+    when the strand moved out of it; at rest the kept C is the fresh one.  Without it every
+    modified strand is decomposed anew.  A, B (S, n, n) padded (A's padding is the identity, B's
+    zero); returns the factors (S, n, n) and the number of strands whose step matrix was modified.
     """
     S, n_pad, _ = A.shape
     chol = np.zeros_like(A)
@@ -58,13 +69,22 @@ def factor_step_matrix(A: np.ndarray, B: np.ndarray, n_elements: np.ndarray) -> 
         n = 3 * int(n_elements[s])
         a, b = A[s, :n, :n], B[s, :n, :n]
         L = None
-        if _cholesky(0.5 * a + b) is not None:
+        if _stable_enough(a, b):
             L = _cholesky(a + b)  # = A/2 + (A/2 + B): positive definite too
         if L is None:
-            L = _cholesky(modified_step_matrix(a, b))
             modified += 1
+            kept = corrections[s] if corrections is not None else None
+            if kept is not None and kept.shape == a.shape and _stable_enough(a, b + kept):
+                L = _cholesky(a + b + kept)
             if L is None:
-                raise np.linalg.LinAlgError(f"strand {s}: the step matrix is not positive definite")
+                m = modified_step_matrix(a, b)
+                L = _cholesky(m)
+                if L is None:
+                    raise np.linalg.LinAlgError(f"strand {s}: the step matrix is not positive definite")
+                if corrections is not None:
+                    corrections[s] = m - (a + b)
+        elif corrections is not None:
+            corrections[s] = None
         chol[s, :n, :n] = L
         pad = np.arange(n, n_pad)
         chol[s, pad, pad] = np.sqrt(A[s, pad, pad] + B[s, pad, pad])

@@ -38,8 +38,8 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-from .series import c_table
-from .superhelix import E0, Kinematics, SuperHelix, _psi_apply_jacobian, kinematics, skew
+from .series import _f_point, c_table
+from .superhelix import E0, Kinematics, SuperHelix, _e0_jacobian, kinematics
 
 
 @dataclass(frozen=True)
@@ -63,135 +63,6 @@ def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
     b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
     return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
-
-
-# --------------------------------------------------------------------------- quadrature points
-@dataclass
-class ElementPoints:
-    """Gauss points of every element: weights w (S, N, Q) (including l_j), positions x relative to the
-    root (S, N, Q, 3), frames R (S, N, Q, 3, 3), own-element Jacobians J_own = R_j D(t) and
-    Jw_own = R_j Psi_1(t) (S, N, Q, 3, 3), local p(t), D(t), Psi_1(t), and the c_n tables."""
-
-    t: np.ndarray
-    w: np.ndarray
-    x: np.ndarray
-    R: np.ndarray
-    J_own: np.ndarray
-    Jw_own: np.ndarray
-    p: np.ndarray
-    D: np.ndarray
-    psi1: np.ndarray
-    c: np.ndarray
-    dc: np.ndarray
-    ddc: np.ndarray
-
-
-def element_points(helix: SuperHelix, kin: Kinematics, order: int = 4) -> ElementPoints:
-    """Gauss-Legendre points of ``order`` per element with every per-point quantity the inertia needs."""
-    xg, wg = np.polynomial.legendre.leggauss(order)
-    l = helix.lengths[..., None]
-    t = 0.5 * (xg + 1.0) * l
-    w = 0.5 * wg * l
-    omega = np.broadcast_to(helix.curvatures[:, :, None, :], t.shape + (3,))
-    z = np.broadcast_to(kin.z[..., None], t.shape)
-    c, dc, ddc = c_table(t, z)
-    W = skew(omega)
-    W2 = W @ W
-    eye = np.eye(3)
-    psi0 = eye + c[1][..., None, None] * W + c[2][..., None, None] * W2
-    psi1 = t[..., None, None] * eye + c[2][..., None, None] * W + c[3][..., None, None] * W2
-    p = psi1[..., :, 0]
-    D = _psi_apply_jacobian(c[2], dc[2], c[3], dc[3], omega, z, np.broadcast_to(E0, omega.shape))
-    Rj = kin.R[:, :-1, None]
-    x = (kin.C[:, :-1, None] - kin.C[:, :1, None]) + np.einsum("snqab,snqb->snqa", Rj, p)
-    return ElementPoints(t=t, w=w, x=x, R=Rj @ psi0, J_own=Rj @ D, Jw_own=Rj @ psi1, p=p, D=D, psi1=psi1,
-                         c=c, dc=dc, ddc=ddc)
-
-
-def _suffix_beyond(per_element: np.ndarray) -> np.ndarray:
-    """Sum over elements k > j for each j along axis 1 (elements beyond node j+1)."""
-    total = np.cumsum(per_element[:, ::-1], axis=1)[:, ::-1]
-    return np.concatenate([total[:, 1:], np.zeros_like(total[:, :1])], axis=1)
-
-
-def _upstream_blocks(helix: SuperHelix, kin: Kinematics) -> tuple[np.ndarray, np.ndarray]:
-    """B_k = R_k D_k(l_k) + [C_{k+1} - C_0]x Theta_k and Theta_k, (S, N, 3, 3) each."""
-    rel = kin.C[:, 1:] - kin.C[:, :1]
-    B = kin.R[:, :-1] @ kin.D + skew(rel) @ kin.Theta
-    return B, kin.Theta
-
-
-def world_inertia(points: ElementPoints, inertia: Inertia) -> np.ndarray:
-    """II(s) = R diag(rho J, rho I1, rho I2) R^T at every point, (S, N, Q, 3, 3)."""
-    rot = np.asarray(inertia.rotational)
-    return np.einsum("...ak,k,...bk->...ab", points.R, rot, points.R)
-
-
-# --------------------------------------------------------------------------- mass matrix
-def mass_matrix(helix: SuperHelix, inertia: Inertia, kin: Kinematics | None = None, order: int = 4,
-                points: ElementPoints | None = None) -> np.ndarray:
-    """M = int rhoS J^T J + Jw^T II Jw ds per strand, (S, 3N, 3N); rows and columns of padding are 0.
-
-    Blocks j < k: M_jk = [B_j^T | Theta_j^T] right_k with
-        right_k = [ rhoS (m0 B_k - [m1]x Theta_k + E_k) ;
-                    rhoS ([m1]x B_k + (tr(m2) I - m2) Theta_k + G_k) + IId Theta_k + Gr_k ]
-    (m0, m1, m2, IId: mass, first/second moment and rotational inertia beyond node k+1; E_k, G_k,
-    Gr_k: int over element k of J_own, [x]x J_own, II Jw_own); M_kk adds element k's own
-    int rhoS J_own^T J_own + Jw_own^T II Jw_own.
-    """
-    kin = kin if kin is not None else kinematics(helix)
-    pts = points if points is not None else element_points(helix, kin, order)
-    S, N = helix.lengths.shape
-    rhoS = inertia.linear
-    II = world_inertia(pts, inertia)
-    w = pts.w[..., None, None]
-    B, Theta = _upstream_blocks(helix, kin)
-
-    m0 = _suffix_beyond(helix.lengths)[..., None, None]
-    m1 = _suffix_beyond(np.einsum("snq,snqa->sna", pts.w, pts.x))
-    m2 = _suffix_beyond(np.einsum("snq,snqa,snqb->snab", pts.w, pts.x, pts.x))
-    IId = _suffix_beyond(np.sum(w * II, axis=2))
-    E = np.sum(w * pts.J_own, axis=2)
-    G = np.sum(w * (skew(pts.x) @ pts.J_own), axis=2)
-    Gr = np.sum(w * (II @ pts.Jw_own), axis=2)
-    own = rhoS * np.sum(w * (np.swapaxes(pts.J_own, -1, -2) @ pts.J_own), axis=2)
-    own += np.sum(w * (np.swapaxes(pts.Jw_own, -1, -2) @ II @ pts.Jw_own), axis=2)
-
-    m1x = skew(m1)
-    tr = np.trace(m2, axis1=-2, axis2=-1)[..., None, None]
-    down_top = rhoS * (m0 * B - m1x @ Theta)
-    down_bottom = rhoS * (m1x @ B + (tr * np.eye(3) - m2) @ Theta) + IId @ Theta
-    left = np.concatenate([np.swapaxes(B, -1, -2), np.swapaxes(Theta, -1, -2)], axis=-1)  # (S, N, 3, 6)
-    right = np.concatenate([down_top + rhoS * E, down_bottom + rhoS * G + Gr], axis=-2)  # (S, N, 6, 3)
-    right_down = np.concatenate([down_top, down_bottom], axis=-2)
-
-    M = np.zeros((S, 3 * N, 3 * N))
-    _assemble_blocks(np.ascontiguousarray(left), np.ascontiguousarray(right), np.ascontiguousarray(right_down),
-                     np.ascontiguousarray(own), np.asarray(helix.n_elements, dtype=np.int64), M)
-    return M
-
-
-@njit(cache=True)
-def _assemble_blocks(left, right, right_down, own, n_elements, M):
-    """M_jk = left_j right_k (j < k), M_kj = M_jk^T, M_kk = left_k right_down_k + own_k, over each
-    strand's real elements only (padding stays 0)."""
-    for s in range(left.shape[0]):
-        n = n_elements[s]
-        for j in range(n):
-            for k in range(j, n):
-                for a in range(3):
-                    for b in range(3):
-                        acc = 0.0
-                        if k == j:
-                            for c in range(6):
-                                acc += left[s, j, a, c] * right_down[s, k, c, b]
-                            acc += own[s, k, a, b]
-                            M[s, 3 * j + a, 3 * k + b] = acc
-                        else:
-                            for c in range(6):
-                                acc += left[s, j, a, c] * right[s, k, c, b]
-                            M[s, 3 * j + a, 3 * k + b] = acc
-                            M[s, 3 * k + b, 3 * j + a] = acc
 
 
 # --------------------------------------------------------------------------- motion and velocity terms
@@ -272,67 +143,356 @@ def node_motion(helix: SuperHelix, rates: np.ndarray, kin: Kinematics | None = N
     return NodeMotion(V=V, Omega=Om, a=a, alpha=al)
 
 
-@dataclass
-class PointMotion:
-    """Velocity, angular velocity and their accelerations at qddot = 0 at every Gauss point, (S, N, Q, 3)."""
+def _root_motion_arrays(S: int, root_motion: dict | None):
+    def init(key):
+        value = None if root_motion is None else root_motion.get(key)
+        return np.ascontiguousarray(np.broadcast_to(np.zeros(3) if value is None else np.asarray(value, dtype=np.float64),
+                                                    (S, 3)))
 
-    V: np.ndarray
-    Omega: np.ndarray
-    a: np.ndarray
-    alpha: np.ndarray
+    return init("root_angular_velocity"), init("root_acceleration"), init("root_angular_acceleration")
 
 
-def point_motion(helix: SuperHelix, rates: np.ndarray, kin: Kinematics, pts: ElementPoints,
-                 nodes: NodeMotion) -> PointMotion:
-    """The node recursion carried from each element's start node to its Gauss points (t instead of l_j)."""
-    u = np.broadcast_to(np.asarray(rates, dtype=np.float64)[:, :, None, :], pts.t.shape + (3,))
-    omega = np.broadcast_to(helix.curvatures[:, :, None, :], pts.t.shape + (3,))
-    z = np.einsum("...i,...i->...", omega, omega)
-    p2, dpsi = _second_directional(pts.c, pts.dc, pts.ddc, omega, z, u)
-    Rj = kin.R[:, :-1, None]
-    y = pts.x - (kin.C[:, :-1, None] - kin.C[:, :1, None])
-    lin = np.einsum("snqab,snqb->snqa", pts.J_own, u)
-    ang = np.einsum("snqab,snqb->snqa", pts.Jw_own, u)
-    o = np.broadcast_to(nodes.Omega[:, :-1, None], y.shape)
-    al = nodes.alpha[:, :-1, None]
-    V = nodes.V[:, :-1, None] + cross(o, y) + lin
-    Om = o + ang
-    acc = (nodes.a[:, :-1, None] + cross(al, y) + cross(o, cross(o, y)) + 2.0 * cross(o, lin)
-           + np.einsum("snqab,snqb->snqa", Rj, p2))
-    alpha = al + cross(o, ang) + np.einsum("snqab,snqb->snqa", Rj, dpsi)
-    return PointMotion(V=V, Omega=Om, a=acc, alpha=alpha)
+def inertia_terms(helix: SuperHelix, inertia: Inertia, kin: Kinematics | None = None, rates=None, order: int = 4,
+                  root_motion: dict | None = None, mass: bool = True):
+    """(M, A): the mass matrix (S, 3N, 3N; None unless ``mass``) and the velocity terms (S, N, 3; None
+    without ``rates``) of one configuration, in one compiled pass over Gauss-Legendre points of
+    ``order`` per element (:func:`mass_matrix`, :func:`velocity_terms` for the formulas)."""
+    kin = kin if kin is not None else kinematics(helix)
+    S, N = helix.lengths.shape
+    xg, wg = np.polynomial.legendre.leggauss(order)
+    want_A = rates is not None
+    u = (np.ascontiguousarray(np.asarray(rates, dtype=np.float64).reshape(S, N, 3)) if want_A
+         else np.zeros((S, N, 3)))
+    om0, acc0, al0 = _root_motion_arrays(S, root_motion)
+    M = np.zeros((S, 3 * N, 3 * N)) if mass else np.zeros((1, 1, 1))
+    A = np.zeros((S, N, 3))
+    _inertia_kernel(np.ascontiguousarray(helix.lengths, dtype=np.float64),
+                    np.ascontiguousarray(helix.curvatures, dtype=np.float64), kin.z, kin.C, kin.R, kin.D, kin.Theta,
+                    np.asarray(helix.n_elements, dtype=np.int64), xg, wg, float(inertia.linear),
+                    np.asarray(inertia.rotational, dtype=np.float64), u, om0, acc0, al0, mass, want_A, M, A)
+    return (M if mass else None), (A if want_A else None)
+
+
+def mass_matrix(helix: SuperHelix, inertia: Inertia, kin: Kinematics | None = None, order: int = 4) -> np.ndarray:
+    """M = int rhoS J^T J + Jw^T II Jw ds per strand, (S, 3N, 3N); rows and columns of padding are 0.
+
+    Blocks j < k: M_jk = [B_j^T | Theta_j^T] right_k with
+        right_k = [ rhoS (m0 B_k - [m1]x Theta_k + E_k) ;
+                    rhoS ([m1]x B_k + (tr(m2) I - m2) Theta_k + G_k) + IId Theta_k + Gr_k ]
+    (B_k = R_k D_k(l_k) + [C_{k+1} - C_0]x Theta_k; m0, m1, m2, IId: mass, first/second moment and
+    rotational inertia beyond node k+1; E_k, G_k, Gr_k: int over element k of J_own, [x]x J_own,
+    II Jw_own); M_kk adds element k's own int rhoS J_own^T J_own + Jw_own^T II Jw_own.  O(N^2) per
+    strand, compiled (:func:`_inertia_kernel`).
+    """
+    return inertia_terms(helix, inertia, kin, order=order)[0]
 
 
 def velocity_terms(helix: SuperHelix, rates: np.ndarray, inertia: Inertia, kin: Kinematics | None = None,
-                   order: int = 4, points: ElementPoints | None = None, root_motion: dict | None = None
-                   ) -> np.ndarray:
+                   order: int = 4, root_motion: dict | None = None) -> np.ndarray:
     """A(q, qdot) = int rhoS J^T a + Jw^T (II alpha + w x II w) ds, (S, N, 3).
 
     Exact for a static root (Coriolis and centrifugal terms); with ``root_motion`` (keys of
     :func:`node_motion`: root_velocity, root_angular_velocity, root_acceleration,
     root_angular_acceleration) it also holds the inertial forces of the moving root frame.
     By structure A_k = B_k^T F_k + Theta_k^T (X_k + T_k) + own_k with F, X, T the sums beyond node k+1
-    of w f, w x x f and w tau (f = rhoS a, tau = II alpha + w x II w).
+    of w f, w x x f and w tau (f = rhoS a, tau = II alpha + w x II w), the point accelerations a, alpha
+    carried from each element's start node by the recursion of :func:`node_motion`.  O(N) per strand.
     """
-    kin = kin if kin is not None else kinematics(helix)
-    pts = points if points is not None else element_points(helix, kin, order)
-    nodes = node_motion(helix, rates, kin, **(root_motion or {}))
-    mo = point_motion(helix, rates, kin, pts, nodes)
-    II = world_inertia(pts, inertia)
-    f = inertia.linear * mo.a
-    tau = np.einsum("...ab,...b->...a", II, mo.alpha) + cross(mo.Omega, np.einsum("...ab,...b->...a", II, mo.Omega))
-    w = pts.w[..., None]
-    Fd = _suffix_beyond(np.sum(w * f, axis=2))
-    Xd = _suffix_beyond(np.sum(w * cross(pts.x, f), axis=2))
-    Td = _suffix_beyond(np.sum(w * tau, axis=2))
-    own = np.sum(w * (np.einsum("...ba,...b->...a", pts.J_own, f) + np.einsum("...ba,...b->...a", pts.Jw_own, tau)),
-                 axis=2)
-    B, Theta = _upstream_blocks(helix, kin)
-    A = np.einsum("snba,snb->sna", B, Fd) + np.einsum("snba,snb->sna", Theta, Xd + Td) + own
-    return A * helix.element_mask[..., None]
+    return inertia_terms(helix, inertia, kin, rates=rates, order=order, root_motion=root_motion, mass=False)[1]
 
 
 def kinetic_energy(mass: np.ndarray, rates: np.ndarray) -> np.ndarray:
     """T = 1/2 qdot^T M qdot per strand, (S,) (static root)."""
     v = np.asarray(rates).reshape(mass.shape[0], -1)
     return 0.5 * np.einsum("si,sij,sj->s", v, mass, v)
+
+
+# --------------------------------------------------------------------------- compiled inertia (M and A in one pass)
+@njit(cache=True)
+def _mat3(A, B, out):
+    """out = A B (3 x 3)."""
+    for a in range(3):
+        for b in range(3):
+            out[a, b] = A[a, 0] * B[0, b] + A[a, 1] * B[1, b] + A[a, 2] * B[2, b]
+
+
+@njit(cache=True)
+def _cross_add(a, b, scale, out):
+    """out += scale (a x b)."""
+    out[0] += scale * (a[1] * b[2] - a[2] * b[1])
+    out[1] += scale * (a[2] * b[0] - a[0] * b[2])
+    out[2] += scale * (a[0] * b[1] - a[1] * b[0])
+
+
+@njit(cache=True)
+def _local_frame(t, w, z, buf, psi0, psi1, Dt, p2, dpsi, u, want_motion):
+    """At t along an element of curvature w (z = |w|^2): Psi_0(t), Psi_1(t), D(t) = dp/dw and, with
+    ``want_motion``, p''[u, u] and dPsi_1[u] u (the formulas of :func:`_second_directional`)."""
+    t2 = t * t
+    _f_point(z * t2, 2, buf)
+    c1 = t * buf[0, 1]
+    c2 = t2 * buf[0, 2]
+    c3 = t2 * t * buf[0, 3]
+    dc2 = t2 * t2 * buf[1, 2]
+    dc3 = t2 * t2 * t * buf[1, 3]
+    w0, w1, w2 = w[0], w[1], w[2]
+    # W = [w]x, W^2 = w w^T - z I
+    W = ((0.0, -w2, w1), (w2, 0.0, -w0), (-w1, w0, 0.0))
+    for a in range(3):
+        for b in range(3):
+            eye = 1.0 if a == b else 0.0
+            w2ab = w[a] * w[b] - z * eye
+            psi0[a, b] = eye + c1 * W[a][b] + c2 * w2ab
+            psi1[a, b] = t * eye + c2 * W[a][b] + c3 * w2ab
+    _e0_jacobian(c2, dc2, c3, dc3, w0, w1, w2, z, Dt)
+    if not want_motion:
+        return
+    ddc2 = t2 * t2 * t2 * buf[2, 2]
+    ddc3 = t2 * t2 * t2 * t * buf[2, 3]
+    u0, u1, u2 = u[0], u[1], u[2]
+    dz = 2.0 * (w0 * u0 + w1 * u1 + w2 * u2)
+    ddz = 2.0 * (u0 * u0 + u1 * u1 + u2 * u2)
+    v1 = (0.0, w2, -w1)  # w x e0
+    v1p = (0.0, u2, -u1)  # u x e0
+    v2 = (w0 * w0 - z, w1 * w0, w2 * w0)  # w w0 - z e0
+    v2p = (u0 * w0 + w0 * u0 - dz, u1 * w0 + w1 * u0, u2 * w0 + w2 * u0)
+    v2pp = (2.0 * u0 * u0 - ddz, 2.0 * u1 * u0, 2.0 * u2 * u0)
+    k1 = ddc2 * dz * dz + dc2 * ddz
+    k2 = 2.0 * dc2 * dz
+    k3 = ddc3 * dz * dz + dc3 * ddz
+    k4 = 2.0 * dc3 * dz
+    for a in range(3):
+        p2[a] = k1 * v1[a] + k2 * v1p[a] + k3 * v2[a] + k4 * v2p[a] + c3 * v2pp[a]
+    wu = (w1 * u2 - w2 * u1, w2 * u0 - w0 * u2, w0 * u1 - w1 * u0)
+    wwu = (w1 * wu[2] - w2 * wu[1], w2 * wu[0] - w0 * wu[2], w0 * wu[1] - w1 * wu[0])
+    uwu = (u1 * wu[2] - u2 * wu[1], u2 * wu[0] - u0 * wu[2], u0 * wu[1] - u1 * wu[0])
+    for a in range(3):
+        dpsi[a] = dz * (dc2 * wu[a] + dc3 * wwu[a]) + c3 * uwu[a]
+
+
+@njit(cache=True)
+def _inertia_kernel(l, w, z, C, R, Dl, Theta, n_elements, xg, wg, rhoS, rot, u, root_om, root_acc, root_alpha,
+                    want_mass, want_A, M, A):
+    """M (S, 3N, 3N, zero padding, written only with ``want_mass``) and A (S, N, 3, with ``want_A``) of
+    mass_matrix and velocity_terms in one pass per strand: per Gauss point the own-element Jacobians,
+    world inertia and (for A) the point accelerations; per element the moments; suffix sums beyond
+    each node; then the blocks M_jk = [B_j^T | Theta_j^T] right_k (module docstring)."""
+    S, N = l.shape
+    Q = xg.shape[0]
+    buf = np.empty((3, 5))
+    psi0 = np.empty((3, 3))
+    psi1 = np.empty((3, 3))
+    Dt = np.empty((3, 3))
+    Rp = np.empty((3, 3))
+    Jo = np.empty((3, 3))
+    Jw = np.empty((3, 3))
+    II = np.empty((3, 3))
+    T1 = np.empty((3, 3))
+    p2 = np.empty(3)
+    dpsi = np.empty(3)
+    x = np.empty(3)
+    y = np.empty(3)
+    lin = np.empty(3)
+    ang = np.empty(3)
+    acc = np.empty(3)
+    alq = np.empty(3)
+    omq = np.empty(3)
+    f = np.empty(3)
+    tau = np.empty(3)
+    IIo = np.empty(3)
+    om = np.empty(3)
+    a_n = np.empty(3)
+    al_n = np.empty(3)
+    # per element: m1, m2, IIsum, E, G, Gr, own (mass); F, X, T, ownA (velocity terms)
+    m1e = np.empty((N, 3))
+    m2e = np.empty((N, 3, 3))
+    IIe = np.empty((N, 3, 3))
+    Ee = np.empty((N, 3, 3))
+    Ge = np.empty((N, 3, 3))
+    Gre = np.empty((N, 3, 3))
+    owne = np.empty((N, 3, 3))
+    Fe = np.empty((N, 3))
+    Xe = np.empty((N, 3))
+    Te = np.empty((N, 3))
+    ownA = np.empty((N, 3))
+    B = np.empty((N, 3, 3))
+    top = np.empty((N, 3, 3))
+    bottom = np.empty((N, 3, 3))
+    dtop = np.empty((N, 3, 3))
+    dbottom = np.empty((N, 3, 3))
+    for s in range(S):
+        n = n_elements[s]
+        for a in range(3):
+            om[a] = root_om[s, a]
+            a_n[a] = root_acc[s, a]
+            al_n[a] = root_alpha[s, a]
+        for j in range(n):
+            lj = l[s, j]
+            wj = w[s, j]
+            zj = z[s, j]
+            uj = u[s, j]
+            Rj = R[s, j]
+            m1e[j] = 0.0
+            m2e[j] = 0.0
+            IIe[j] = 0.0
+            Ee[j] = 0.0
+            Ge[j] = 0.0
+            Gre[j] = 0.0
+            owne[j] = 0.0
+            Fe[j] = 0.0
+            Xe[j] = 0.0
+            Te[j] = 0.0
+            ownA[j] = 0.0
+            for q in range(Q + 1):
+                last = q == Q  # the element's end: advances the node motion
+                if last and not want_A:
+                    break
+                t = lj if last else 0.5 * (xg[q] + 1.0) * lj
+                wq = 0.5 * wg[q] * lj if not last else 0.0
+                _local_frame(t, wj, zj, buf, psi0, psi1, Dt, p2, dpsi, uj, want_A)
+                for a in range(3):
+                    y[a] = Rj[a, 0] * psi1[0, 0] + Rj[a, 1] * psi1[1, 0] + Rj[a, 2] * psi1[2, 0]
+                    x[a] = C[s, j, a] - C[s, 0, a] + y[a]
+                _mat3(Rj, Dt, Jo)
+                _mat3(Rj, psi1, Jw)
+                if want_A:
+                    for a in range(3):
+                        lin[a] = Jo[a, 0] * uj[0] + Jo[a, 1] * uj[1] + Jo[a, 2] * uj[2]
+                        ang[a] = Jw[a, 0] * uj[0] + Jw[a, 1] * uj[1] + Jw[a, 2] * uj[2]
+                        acc[a] = a_n[a] + Rj[a, 0] * p2[0] + Rj[a, 1] * p2[1] + Rj[a, 2] * p2[2]
+                        alq[a] = al_n[a] + Rj[a, 0] * dpsi[0] + Rj[a, 1] * dpsi[1] + Rj[a, 2] * dpsi[2]
+                        omq[a] = om[a] + ang[a]
+                    # a = a_j + al_j x y + Om_j x (Om_j x y) + 2 Om_j x lin + R p''; al = al_j + Om_j x ang + R dPsi
+                    oy = (om[1] * y[2] - om[2] * y[1], om[2] * y[0] - om[0] * y[2], om[0] * y[1] - om[1] * y[0])
+                    _cross_add(al_n, y, 1.0, acc)
+                    acc[0] += om[1] * oy[2] - om[2] * oy[1]
+                    acc[1] += om[2] * oy[0] - om[0] * oy[2]
+                    acc[2] += om[0] * oy[1] - om[1] * oy[0]
+                    _cross_add(om, lin, 2.0, acc)
+                    _cross_add(om, ang, 1.0, alq)
+                    if last:
+                        for a in range(3):
+                            a_n[a] = acc[a]
+                            al_n[a] = alq[a]
+                            om[a] = omq[a]
+                        break
+                if wq == 0.0:
+                    continue
+                # world inertia II = (R Psi_0) diag(rot) (R Psi_0)^T
+                _mat3(Rj, psi0, Rp)
+                for a in range(3):
+                    for b in range(a, 3):
+                        v = rot[0] * Rp[a, 0] * Rp[b, 0] + rot[1] * Rp[a, 1] * Rp[b, 1] + rot[2] * Rp[a, 2] * Rp[b, 2]
+                        II[a, b] = v
+                        II[b, a] = v
+                if want_mass:
+                    for a in range(3):
+                        m1e[j, a] += wq * x[a]
+                        for b in range(3):
+                            m2e[j, a, b] += wq * x[a] * x[b]
+                            IIe[j, a, b] += wq * II[a, b]
+                            Ee[j, a, b] += wq * Jo[a, b]
+                    # G += w [x]x Jo ; Gr += w II Jw
+                    for b in range(3):
+                        Ge[j, 0, b] += wq * (x[1] * Jo[2, b] - x[2] * Jo[1, b])
+                        Ge[j, 1, b] += wq * (x[2] * Jo[0, b] - x[0] * Jo[2, b])
+                        Ge[j, 2, b] += wq * (x[0] * Jo[1, b] - x[1] * Jo[0, b])
+                    _mat3(II, Jw, T1)
+                    for a in range(3):
+                        for b in range(3):
+                            Gre[j, a, b] += wq * T1[a, b]
+                    # own += w (rhoS Jo^T Jo + Jw^T II Jw)
+                    for a in range(3):
+                        for b in range(3):
+                            owne[j, a, b] += wq * (rhoS * (Jo[0, a] * Jo[0, b] + Jo[1, a] * Jo[1, b] + Jo[2, a] * Jo[2, b])
+                                                   + Jw[0, a] * T1[0, b] + Jw[1, a] * T1[1, b] + Jw[2, a] * T1[2, b])
+                if want_A:
+                    for a in range(3):
+                        f[a] = rhoS * acc[a]
+                        IIo[a] = II[a, 0] * omq[0] + II[a, 1] * omq[1] + II[a, 2] * omq[2]
+                        tau[a] = II[a, 0] * alq[0] + II[a, 1] * alq[1] + II[a, 2] * alq[2]
+                    _cross_add(omq, IIo, 1.0, tau)
+                    for a in range(3):
+                        Fe[j, a] += wq * f[a]
+                        Te[j, a] += wq * tau[a]
+                        ownA[j, a] += wq * (Jo[0, a] * f[0] + Jo[1, a] * f[1] + Jo[2, a] * f[2]
+                                            + Jw[0, a] * tau[0] + Jw[1, a] * tau[1] + Jw[2, a] * tau[2])
+                    _cross_add(x, f, wq, Xe[j])
+        # B_k = R_k D_k(l_k) + [C_{k+1} - C_0]x Theta_k
+        for k in range(n):
+            _mat3(R[s, k], Dl[s, k], T1)
+            r0 = C[s, k + 1, 0] - C[s, 0, 0]
+            r1 = C[s, k + 1, 1] - C[s, 0, 1]
+            r2 = C[s, k + 1, 2] - C[s, 0, 2]
+            Th = Theta[s, k]
+            for b in range(3):
+                B[k, 0, b] = T1[0, b] + r1 * Th[2, b] - r2 * Th[1, b]
+                B[k, 1, b] = T1[1, b] + r2 * Th[0, b] - r0 * Th[2, b]
+                B[k, 2, b] = T1[2, b] + r0 * Th[1, b] - r1 * Th[0, b]
+        # suffix sums beyond node k+1, walking back from the tip
+        m0 = 0.0
+        m1 = np.zeros(3)
+        m2 = np.zeros((3, 3))
+        IId = np.zeros((3, 3))
+        Fd = np.zeros(3)
+        Xd = np.zeros(3)
+        Td = np.zeros(3)
+        for k in range(n - 1, -1, -1):
+            Bk = B[k]
+            Th = Theta[s, k]
+            if want_A:
+                for a in range(3):
+                    A[s, k, a] = (Bk[0, a] * Fd[0] + Bk[1, a] * Fd[1] + Bk[2, a] * Fd[2]
+                                  + Th[0, a] * (Xd[0] + Td[0]) + Th[1, a] * (Xd[1] + Td[1])
+                                  + Th[2, a] * (Xd[2] + Td[2]) + ownA[k, a])
+                for a in range(3):
+                    Fd[a] += Fe[k, a]
+                    Xd[a] += Xe[k, a]
+                    Td[a] += Te[k, a]
+            if want_mass:
+                tr = m2[0, 0] + m2[1, 1] + m2[2, 2]
+                for b in range(3):
+                    # [m1]x B and [m1]x Theta, column b
+                    mB0 = m1[1] * Bk[2, b] - m1[2] * Bk[1, b]
+                    mB1 = m1[2] * Bk[0, b] - m1[0] * Bk[2, b]
+                    mB2 = m1[0] * Bk[1, b] - m1[1] * Bk[0, b]
+                    mT0 = m1[1] * Th[2, b] - m1[2] * Th[1, b]
+                    mT1 = m1[2] * Th[0, b] - m1[0] * Th[2, b]
+                    mT2 = m1[0] * Th[1, b] - m1[1] * Th[0, b]
+                    mB = (mB0, mB1, mB2)
+                    mT = (mT0, mT1, mT2)
+                    for a in range(3):
+                        dt_ = rhoS * (m0 * Bk[a, b] - mT[a])
+                        db = rhoS * mB[a] + IId[a, 0] * Th[0, b] + IId[a, 1] * Th[1, b] + IId[a, 2] * Th[2, b]
+                        db += rhoS * (tr * Th[a, b] - m2[a, 0] * Th[0, b] - m2[a, 1] * Th[1, b] - m2[a, 2] * Th[2, b])
+                        dtop[k, a, b] = dt_
+                        dbottom[k, a, b] = db
+                        top[k, a, b] = dt_ + rhoS * Ee[k, a, b]
+                        bottom[k, a, b] = db + rhoS * Ge[k, a, b] + Gre[k, a, b]
+                m0 += l[s, k]
+                for a in range(3):
+                    m1[a] += m1e[k, a]
+                    for b in range(3):
+                        m2[a, b] += m2e[k, a, b]
+                        IId[a, b] += IIe[k, a, b]
+        if not want_mass:
+            continue
+        for j in range(n):
+            Bj = B[j]
+            Tj = Theta[s, j]
+            for k in range(j, n):
+                if k == j:
+                    rt = dtop[k]
+                    rb = dbottom[k]
+                else:
+                    rt = top[k]
+                    rb = bottom[k]
+                for a in range(3):
+                    for b in range(3):
+                        v = (Bj[0, a] * rt[0, b] + Bj[1, a] * rt[1, b] + Bj[2, a] * rt[2, b]
+                             + Tj[0, a] * rb[0, b] + Tj[1, a] * rb[1, b] + Tj[2, a] * rb[2, b])
+                        if k == j:
+                            M[s, 3 * j + a, 3 * k + b] = v + owne[k, a, b]
+                        else:
+                            M[s, 3 * j + a, 3 * k + b] = v
+                            M[s, 3 * k + b, 3 * j + a] = v
