@@ -8,8 +8,9 @@ process CPU time (the two differ when the machine is shared).  ``--rows`` re-run
 with those labels (``row_label``, e.g. ``harolongo_fitted@50um-head``) and merges them into the
 existing contact.json (the other rows, the head query comparison and the distance study are kept).
 The ``-head`` rows time the strand/head pass alone, ``detect_head_contacts`` against the previous
-implementation ``_detect_head_contacts_reference`` (alternating, 3 times each, a fresh HeadSurface
-each time, built outside the timing), and check that both return the same contacts bit for bit.
+implementation ``detect_head_contacts_reference`` (tests/reference/contact.py; alternating, 3 times each,
+a fresh HeadSurface each time, built outside the timing), and check that both return the same contacts
+bit for bit.
 """
 
 from __future__ import annotations
@@ -29,6 +30,7 @@ os.environ["NUMBA_NUM_THREADS"] = "1"
 import numpy as np  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO / "tests"))  # reference.contact: the implementations the tests compare with
 DEFAULT_DATA = REPO.parent / "shared" / "data"
 HAROLONGO = ("digital-salon/harolongo.data", "digital-salon/Retopologised_Female_Head_01_mod.obj", 0.01)
 USC_HEAD = "usc/head_model.obj"
@@ -153,22 +155,22 @@ def run_row(spec: dict, data: Path) -> dict:
 
 def run_head_row(spec: dict, data: Path, repeats: int = 3) -> dict:
     """The strand/head pass alone: bounded (``detect_head_contacts``) vs every vertex queried
-    (``_detect_head_contacts_reference``), CPU seconds of each repetition, and whether they agree."""
+    (``detect_head_contacts_reference``), CPU seconds of each repetition, and whether they agree."""
     from groomtool.contact import HeadSurface, detect_head_contacts
-    from groomtool.contact.head import _detect_head_contacts_reference
+    from reference.contact import detect_head_contacts_reference
 
     prepared = groups_for(spec, data)
     meshes = {id(mesh): mesh for _, mesh in prepared}
     (pts, off, arc), mesh = prepared[0]
     k = off[min(3, len(off) - 1)]
-    for fn in (detect_head_contacts, _detect_head_contacts_reference):  # loads the numba cache
+    for fn in (detect_head_contacts, detect_head_contacts_reference):  # loads the numba cache
         fn(pts[:k], off[:4], arc[:k], HeadSurface(mesh), spec["radius"])
     fields = ("strand_a", "s_a", "strand_b", "s_b", "point_a", "point_b", "normal", "frame", "distance")
     cpu: dict = {"bounded": [], "reference": []}
     results: dict = {}
     totals: dict = {}
     for _ in range(repeats):
-        for name, fn in (("reference", _detect_head_contacts_reference), ("bounded", detect_head_contacts)):
+        for name, fn in (("reference", detect_head_contacts_reference), ("bounded", detect_head_contacts)):
             surfaces = {key: HeadSurface(m) for key, m in meshes.items()}  # fresh: lazy set-up is timed
             out, stats_all = [], {}
             cpu0 = time.process_time()
@@ -238,7 +240,7 @@ def distance_study(data: Path) -> dict:
     """Distributions behind the default radius: nearest other strand, head gaps."""
     from groomtool.contact import HeadSurface, close_segment_pairs, root_gaps
     from groomtool.contact.detect import strand_segments
-    from groomtool.contact.head import vertex_signed_distances
+    from reference.contact import vertex_signed_distances
 
     out = {}
     pct = [1, 5, 10, 25, 50, 75, 90]
@@ -402,7 +404,8 @@ def main() -> None:
           "contacts: one per local minimum after merging. s/h inside: head contacts with the axis inside the mesh.", "",
           "## Strand/head pass alone: bounded vs every vertex queried", "",
           "`detect_head_contacts` (distance bounds along each strand, docs/contact.md) against the previous "
-          "implementation `_detect_head_contacts_reference` (every vertex in the inflated box queried), alternating, "
+          "implementation `detect_head_contacts_reference` (tests/reference/contact.py: every vertex in the inflated "
+          "box queried), alternating, "
           "each with a fresh HeadSurface built outside the timing (so the bounded pass pays its own mesh checks). "
           "cpu s: process CPU seconds of each of the 3 repetitions; speedup: best reference / best bounded. "
           "head verts / head refine: wall seconds of the last run, bounded (reference). exact queries: vertices whose "

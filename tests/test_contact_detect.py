@@ -11,6 +11,7 @@ from groomtool.contact import (HEAD, Contacts, close_segment_pairs, contact_fram
 from groomtool.contact import detect
 from groomtool.contact.detect import strand_segments
 from groomtool.groom import Groom
+from reference import contact as contact_reference
 
 RC = 1e-4  # contact radius used by the hand-made configurations (m)
 
@@ -322,7 +323,7 @@ def test_spatial_hash_equals_brute_force(seed, n_strands, radius, cell):
 
 def reference_pairs(points, offsets, arc, radius):
     """The pairs of the segment-level hash that the grouped broad phase replaced, sorted by (i, j)."""
-    ref = detect._reference_close_segment_pairs(points, offsets, arc, radius)
+    ref = contact_reference.close_segment_pairs_reference(points, offsets, arc, radius)
     order = np.lexsort((ref.j, ref.i))
     return detect.SegmentPairs(ref.i[order], ref.j[order], ref.s[order], ref.t[order], ref.distance[order],
                                ref.n_candidates)

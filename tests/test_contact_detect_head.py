@@ -12,6 +12,7 @@ from groomtool.contact import head as head_mod
 from groomtool.contact.detect import strand_segments
 from groomtool.groom import Groom
 from groomtool.io import read_data
+from reference import contact as contact_reference
 
 R = 0.1  # sphere radius (m)
 RC = 1e-4
@@ -239,7 +240,7 @@ def assert_same_contacts(pts, off, arc, surface, radius, **kw):
     """Both implementations, every field bit for bit, and the shared counters; returns the new stats."""
     new_stats, ref_stats = {}, {}
     new = detect_head_contacts(pts, off, arc, surface, radius, stats=new_stats, **kw)
-    ref = head_mod._detect_head_contacts_reference(pts, off, arc, surface, radius, stats=ref_stats, **kw)
+    ref = contact_reference.detect_head_contacts_reference(pts, off, arc, surface, radius, stats=ref_stats, **kw)
     for name in FIELDS:
         a, b = np.asarray(getattr(new, name)), np.asarray(getattr(ref, name))
         assert a.shape == b.shape, name
@@ -256,7 +257,7 @@ def assert_bounds_hold(pts, off, surface, radius):
     """The vertex pass: exact values equal the reference's per-vertex distances bit for bit, and
     every bounded vertex's reference distance is at least its bound.  Returns the bounded count."""
     max_seg = head_mod._max_segment(pts, off)
-    ref = head_mod.vertex_signed_distances(pts, off, surface, radius + max_seg)
+    ref = contact_reference.vertex_signed_distances(pts, off, surface, radius + max_seg)
     lo, hi = surface.bounds
     in_box = head_mod._in_box_kernel(pts, lo - (radius + max_seg), hi + (radius + max_seg))
     ok, guard = surface._sign_info()
@@ -352,7 +353,7 @@ def test_open_mesh_is_guarded_at_its_hole():
     unguarded = HeadSurface(bowl)
     unguarded._sign_cache = (True, np.zeros((0, 15)))
     wrong = detect_head_contacts(pts, off, arc, unguarded, RC)
-    right = head_mod._detect_head_contacts_reference(pts, off, arc, surface, RC)
+    right = contact_reference.detect_head_contacts_reference(pts, off, arc, surface, RC)
     assert len(wrong) < len(right)
 
 

@@ -23,8 +23,9 @@ u) bounds the next vertices' distance by u -/+ the arc since it (1-Lipschitz), a
 lower bound already rules it out as a candidate keeps the bound, when its sign is known to be
 outside (``_sign_propagation``: a consistently oriented, one-component manifold mesh, the path
 away from the surface and from the holes' guard boxes).  The minima pass replaces a bound by the
-exact distance wherever a decision needs it, so the result is that of
-``_detect_head_contacts_reference`` (every vertex queried) bit for bit; the tests compare them.
+exact distance wherever a decision needs it, so the result is that of the reference that queries
+every vertex (``detect_head_contacts_reference`` in tests/reference/contact.py) bit for bit; the tests
+compare them.
 """
 
 from __future__ import annotations
@@ -36,7 +37,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
-from .detect import HEAD, Contacts, check_strands, merge_close, strand_segments
+from .detect import HEAD, Contacts, check_strands, merge_close
 from .frames import contact_frames
 
 _GOLDEN = 0.5 * (np.sqrt(5.0) - 1.0)
@@ -400,126 +401,6 @@ def _query_kernel(points, bvh):
 
 # ------------------------------------------------------------------------------- head contacts
 @nb.njit(cache=True)
-def _signed_on_segment(p, q, x, dp, dq, length, bvh):
-    """Signed distance at p + x (q - p); |dp|, |dq| (the ends' distances) bound the search."""
-    bound = min(abs(dp) + x * length, abs(dq) + (1.0 - x) * length)
-    return _signed_point(p[0] + x * (q[0] - p[0]), p[1] + x * (q[1] - p[1]), p[2] + x * (q[2] - p[2]),
-                         bvh, bound)[0]
-
-
-@nb.njit(cache=True)
-def _golden_on_segment(p, q, dp, dq, t_lo, bvh, tol):
-    """Minimise the signed distance over p + t (q - p), t in [t_lo, 1]; returns (t, distance).
-
-    dp, dq: the signed distances at p and q.
-    """
-    length = np.sqrt((q[0] - p[0]) ** 2 + (q[1] - p[1]) ** 2 + (q[2] - p[2]) ** 2)
-    lo, hi = t_lo, 1.0
-    x1 = hi - _GOLDEN * (hi - lo)
-    x2 = lo + _GOLDEN * (hi - lo)
-    f1 = _signed_on_segment(p, q, x1, dp, dq, length, bvh)
-    f2 = _signed_on_segment(p, q, x2, dp, dq, length, bvh)
-    while hi - lo > tol:
-        if f1 <= f2:
-            hi, x2, f2 = x2, x1, f1
-            x1 = hi - _GOLDEN * (hi - lo)
-            f1 = _signed_on_segment(p, q, x1, dp, dq, length, bvh)
-        else:
-            lo, x1, f1 = x1, x2, f2
-            x2 = lo + _GOLDEN * (hi - lo)
-            f2 = _signed_on_segment(p, q, x2, dp, dq, length, bvh)
-    return (x1, f1) if f1 <= f2 else (x2, f2)
-
-
-@nb.njit(cache=True)
-def _head_minima_kernel(points, arc, offsets, vdist, bvh, radius, min_root_arc, rel_tol):
-    """Per strand: refined local minima of the signed distance below ``radius``.
-
-    Returns (vertex index of the segment start, segment parameter, distance) per minimum, and the
-    number of refined candidates.
-    """
-    out_v = np.empty(1024, np.int64)
-    out_t = np.empty(1024)
-    out_d = np.empty(1024)
-    n_out = 0
-    n_refined = 0
-    for st in range(offsets.shape[0] - 1):
-        v_first, v_last = offsets[st], offsets[st + 1] - 1
-        if v_last <= v_first:  # a strand without segments has no contact
-            continue
-        for k in range(v_first, v_last + 1):
-            dk = vdist[k]
-            if arc[k] - arc[v_first] < min_root_arc:
-                continue
-            if k > v_first and vdist[k - 1] < dk:
-                continue
-            if k < v_last and vdist[k + 1] <= dk:
-                continue
-            # 1-Lipschitz lower bound of the distance over the two segments around k
-            side_lower = np.full(2, np.inf)
-            for side, nb_ in enumerate((k - 1, k + 1)):
-                if v_first <= nb_ <= v_last:
-                    seg = np.sqrt((points[nb_, 0] - points[k, 0]) ** 2
-                                  + (points[nb_, 1] - points[k, 1]) ** 2
-                                  + (points[nb_, 2] - points[k, 2]) ** 2)
-                    side_lower[side] = 0.5 * (dk + vdist[nb_] - seg)
-            if min(dk, side_lower[0], side_lower[1]) >= radius:
-                continue
-            n_refined += 1
-            best_v, best_t, best_d = k, 0.0, dk
-            if k == v_last:  # express the vertex as the end of its segment
-                best_v, best_t = k - 1, 1.0
-            if k > v_first and side_lower[0] < radius:  # segment (k - 1, k), outside the attachment
-                a0, a1 = arc[k - 1] - arc[v_first], arc[k] - arc[v_first]
-                t_lo = 0.0
-                if a0 < min_root_arc:
-                    t_lo = (min_root_arc - a0) / (a1 - a0) if a1 > a0 else 1.0
-                t, d = _golden_on_segment(points[k - 1], points[k], vdist[k - 1], dk, t_lo, bvh, rel_tol)
-                if d < best_d and t > t_lo + rel_tol:
-                    best_v, best_t, best_d = k - 1, t, d
-            if k < v_last and side_lower[1] < radius:  # segment (k, k + 1)
-                t, d = _golden_on_segment(points[k], points[k + 1], dk, vdist[k + 1], 0.0, bvh, rel_tol)
-                if d < best_d:
-                    best_v, best_t, best_d = k, t, d
-            if best_d >= radius:
-                continue
-            if n_out == out_v.shape[0]:
-                out_v = np.concatenate((out_v, np.empty(n_out, np.int64)))
-                out_t = np.concatenate((out_t, np.empty(n_out)))
-                out_d = np.concatenate((out_d, np.empty(n_out)))
-            out_v[n_out], out_t[n_out], out_d[n_out] = best_v, best_t, best_d
-            n_out += 1
-    return out_v[:n_out], out_t[:n_out], out_d[:n_out], n_refined
-
-
-@nb.njit(cache=True)
-def _strand_distances_kernel(points, offsets, in_box, bvh):
-    """Signed distance of every vertex in the box (+inf elsewhere); along a strand the previous
-    vertex's distance plus the segment length bounds the search (1-Lipschitz)."""
-    dist = np.full(points.shape[0], np.inf)
-    for st in range(offsets.shape[0] - 1):
-        for k in range(offsets[st], offsets[st + 1]):
-            if not in_box[k]:
-                continue
-            bound = np.inf
-            if k > offsets[st] and in_box[k - 1]:
-                step = np.sqrt((points[k, 0] - points[k - 1, 0]) ** 2
-                               + (points[k, 1] - points[k - 1, 1]) ** 2
-                               + (points[k, 2] - points[k - 1, 2]) ** 2)
-                bound = abs(dist[k - 1]) + step
-            dist[k] = _signed_point(points[k, 0], points[k, 1], points[k, 2], bvh, bound)[0]
-    return dist
-
-
-def vertex_signed_distances(points, offsets, head: HeadSurface, margin: float) -> np.ndarray:
-    """Signed distance of every strand vertex; +inf outside the head box inflated by ``margin``."""
-    lo, hi = head.bounds
-    in_box = np.all((points >= lo - margin) & (points <= hi + margin), axis=1)
-    return _strand_distances_kernel(points, offsets, in_box, head._bvh)
-
-
-# ------------------------------------------------------------------ bounded head contacts (fast path)
-@nb.njit(cache=True)
 def _box_gap2(box, i, px, py, pz):
     """``_box_dist2`` without branches (the same value)."""
     gx = max(box[i, 0] - px, px - box[i, 3], 0.0)
@@ -665,9 +546,10 @@ def _signed_among(px, py, pz, bvh, tri_box, bound, cand, n_cand):
 
 @nb.njit(cache=True)
 def _golden_cand(p, q, dp, dq, t_lo, bvh, tri_box, tol, cand):
-    """``_golden_on_segment`` with every evaluation searched among the faces near the segment
-    (``_segment_candidates``, reach: the largest distance bound of the evaluations): the same
-    evaluations, values and result.  Returns (t, distance, cand)."""
+    """The golden-section search of the reference (``_golden_on_segment``, tests/reference/contact.py)
+    with every evaluation searched among the faces near the segment (``_segment_candidates``, reach:
+    the largest distance bound of the evaluations): the same evaluations, values and result.  Returns
+    (t, distance, cand)."""
     box, child, span, tri, normals, rim = bvh
     length = np.sqrt((q[0] - p[0]) ** 2 + (q[1] - p[1]) ** 2 + (q[2] - p[2]) ** 2)
     reach = 0.5 * (abs(dp) + abs(dq) + length)  # >= min(|dp| + x l, |dq| + (1 - x) l) for every x
@@ -697,7 +579,7 @@ def _golden_cand(p, q, dp, dq, t_lo, bvh, tri_box, tol, cand):
 
 @nb.njit(cache=True)
 def _seg_len(points, i, j):
-    """|points[j] - points[i]| (the same rounding as the side bounds of ``_head_minima_kernel``)."""
+    """|points[j] - points[i]| (the same rounding as the side bounds of the reference's ``_head_minima_kernel``)."""
     return np.sqrt((points[j, 0] - points[i, 0]) ** 2 + (points[j, 1] - points[i, 1]) ** 2
                    + (points[j, 2] - points[i, 2]) ** 2)
 
@@ -719,8 +601,8 @@ def _guard_dist2(px, py, pz, guard):
 
 @nb.njit(cache=True)
 def _never_refined(q, radius, s_prev, s_next, has_prev, has_next):
-    """True when a vertex whose signed distance is at least ``q`` is no candidate of
-    ``_head_minima_kernel`` whatever its neighbours: a candidate is a discrete local minimum (no
+    """True when a vertex whose signed distance is at least ``q`` is no candidate of the
+    reference's ``_head_minima_kernel`` whatever its neighbours: a candidate is a discrete local minimum (no
     neighbour below it) with min(d, side bounds) < radius, and its side bound 0.5 (d + d_neighbour -
     seg) is then at least 0.5 (q + q - seg), in floating point too (rounding is monotone).  The same
     expressions as there, so the test is exact, not approximately so."""
@@ -735,7 +617,7 @@ def _never_refined(q, radius, s_prev, s_next, has_prev, has_next):
 
 @nb.njit(cache=True)
 def _in_box_kernel(points, lo, hi):
-    """``vertex_signed_distances``' box test (lo, hi: the inflated box corners)."""
+    """The reference's ``vertex_signed_distances``' box test (lo, hi: the inflated box corners)."""
     out = np.empty(points.shape[0], np.bool_)
     for k in range(points.shape[0]):
         out[k] = (points[k, 0] >= lo[0] and points[k, 1] >= lo[1] and points[k, 2] >= lo[2]
@@ -811,11 +693,11 @@ def _make_exact(points, k, val, exact, bvh, tri_box):
 @nb.njit(cache=True)
 def _head_minima_bounded_kernel(points, arc, offsets, val, exact, bvh, tri_box, radius, min_root_arc, rel_tol,
                                 max_seg):
-    """``_head_minima_kernel`` on values that are exact or lower bounds (``_strand_bounds_kernel``):
-    a bound is replaced by the exact distance (in place) wherever a decision needs it, so the
-    candidates, the values used and the results are those of ``_head_minima_kernel`` on the exact
-    distances.  ``max_seg``: the longest segment (a quick first test).  Returns its four outputs and
-    the number of late exact queries."""
+    """The reference's ``_head_minima_kernel`` (tests/reference/contact.py) on values that are exact
+    or lower bounds (``_strand_bounds_kernel``): a bound is replaced by the exact distance (in place)
+    wherever a decision needs it, so the candidates, the values used and the results are those of
+    ``_head_minima_kernel`` on the exact distances.  ``max_seg``: the longest segment (a quick first
+    test).  Returns its four outputs and the number of late exact queries."""
     out_v = np.empty(1024, np.int64)
     out_t = np.empty(1024)
     out_d = np.empty(1024)
@@ -908,9 +790,9 @@ def detect_head_contacts(points, offsets, arc, head, radius: float, *, min_root_
     that are below ``radius`` (negative: the axis is inside the head; such contacts are reported).
 
     ``head``: a trimesh.Trimesh, (vertices, faces) or a prepared ``HeadSurface``.  See the module
-    docstring for the rules; contacts are ordered by (strand_a, s_a).  The result is that of
-    ``_detect_head_contacts_reference`` (every vertex queried); this one queries only the vertices
-    whose distance bounds cannot rule them out.
+    docstring for the rules; contacts are ordered by (strand_a, s_a).  The result is that of the
+    reference ``detect_head_contacts_reference`` (tests/reference/contact.py: every vertex queried);
+    this one queries only the vertices whose distance bounds cannot rule them out.
     """
     points, offsets, arc = check_strands(points, offsets, arc)
     if not radius > 0:
@@ -948,48 +830,6 @@ def detect_head_contacts(points, offsets, arc, head, radius: float, *, min_root_
         stats.update(head_vertices_in_box=int(np.count_nonzero(in_box)), head_vertices_queried=int(n_exact + n_late),
                      head_vertices_bounded=int(n_bounded - n_late), head_vertices_late=int(n_late),
                      head_vertices_inside=int(np.count_nonzero(val < 0.0)),
-                     head_candidates=int(n_refined), head_minima=n_minima, head_contacts=len(kept),
-                     time_head_prepare=t1 - t0, time_head_vertices=t2 - t1, time_head_refine=t3 - t2,
-                     time_head_frames=time.perf_counter() - t3)
-    return Contacts(strand, s_a, np.full(len(v), HEAD), np.full(len(v), np.nan), point_a, closest, normal, frame,
-                    dist, radius)
-
-
-def _detect_head_contacts_reference(points, offsets, arc, head, radius: float, *,
-                                    min_root_arc: float | None = None, merge_arc: float | None = None,
-                                    stats: dict | None = None) -> Contacts:
-    """``detect_head_contacts`` as it was before the bounds (every vertex in the box queried):
-    the reference the tests compare it with, bit for bit."""
-    points, offsets, arc = check_strands(points, offsets, arc)
-    if not radius > 0:
-        raise ValueError(f"contact radius must be positive, got {radius}")
-    t0 = time.perf_counter()
-    head = as_head_surface(head)
-    min_root_arc = np.pi * radius if min_root_arc is None else float(min_root_arc)
-    merge_arc = 4.0 * radius if merge_arc is None else float(merge_arc)
-    seg_v0, _ = strand_segments(offsets)
-    seg_len = np.linalg.norm(points[seg_v0 + 1] - points[seg_v0], axis=1)
-    max_seg = float(np.max(seg_len)) if len(seg_len) else 0.0
-    t1 = time.perf_counter()
-
-    vdist = vertex_signed_distances(points, offsets, head, radius + max_seg)
-    t2 = time.perf_counter()
-    v, t, d, n_refined = _head_minima_kernel(points, arc, offsets, vdist, head._bvh, float(radius),
-                                             min_root_arc, 1e-3)
-    strand = np.searchsorted(offsets, v, side="right") - 1
-    s_a = arc[v] + t * (arc[v + 1] - arc[v])
-    kept = merge_close(strand, np.full(len(v), HEAD), s_a, np.zeros(len(v)), d, merge_arc)
-    t3 = time.perf_counter()
-
-    n_minima = len(v)
-    v, t, strand, s_a = v[kept], t[kept], strand[kept], s_a[kept]
-    direction = points[v + 1] - points[v]
-    point_a = points[v] + t[:, None] * direction
-    dist, closest, normal, _ = head.query(point_a)
-    frame = contact_frames(normal, direction) if len(v) else np.zeros((0, 3, 3))
-    if stats is not None:
-        stats.update(head_vertices_queried=int(np.isfinite(vdist).sum()),
-                     head_vertices_inside=int(np.sum(vdist < 0.0)),
                      head_candidates=int(n_refined), head_minima=n_minima, head_contacts=len(kept),
                      time_head_prepare=t1 - t0, time_head_vertices=t2 - t1, time_head_refine=t3 - t2,
                      time_head_frames=time.perf_counter() - t3)
