@@ -4,7 +4,7 @@
 - co-helicity relaxation against a dense KKT solve;
 - recovery of a known Super-Helix from its exact nodes and tangents, and from a dense polyline;
 - sampling (local cubic), closest-point distances against brute force, tolerances and adaptivity;
-- the numba kernels against the numpy versions they replace (kept as private references).
+- the numba kernels against the numpy versions they replace (kept as references in tests/reference/fit.py).
 """
 
 import math
@@ -21,15 +21,15 @@ from groomtool.fit import effective_tolerance, fit_groom, fit_polyline_fixed, re
 from groomtool.fit import error as fit_error
 from groomtool.fit import helix as fit_helix
 from groomtool.fit import kernels as fit_kernels
-from groomtool.fit import sampling as fit_sampling
-from groomtool.fit import state as fit_state
 from groomtool.fit.cohelicity import constraint_residuals
-from groomtool.fit.error import closest_distances, evaluate_table
-from groomtool.fit.helix import cohelicity_defect, helix_chord, helix_residuals, rotate
+from groomtool.fit.error import closest_distances
+from groomtool.fit.helix import helix_chord, helix_residuals, rotate
 from groomtool.fit.sampling import PolylineCurves, drop_repeated_vertices, ensure_four_vertices, vertex_arc_lengths
-from groomtool.fit.state import assemble, curve_table, root_frames
+from groomtool.fit.state import assemble, root_frames
 from groomtool.groom import Groom, GroomError
 from groomtool.rods import superhelix as sh
+from reference import fit as fit_reference
+from reference.fit import cohelicity_defect, curve_table, evaluate_table
 
 
 def unit(v):
@@ -390,7 +390,7 @@ class _LibmNumpy:
 @contextmanager
 def libm_numpy():
     """Run the numpy references with :class:`_LibmNumpy` (call the kernels first: they compile outside)."""
-    modules = (fit_helix, fit_kernels, fit_error)
+    modules = (fit_helix, fit_kernels, fit_error, fit_reference)
     saved = [m.np for m in modules]
     for m in modules:
         m.np = _LibmNumpy()
@@ -445,7 +445,7 @@ def test_helix_kernel_matches_numpy(seed, budget):
     sol = solve_helix(t0, t1, c, chord_tolerance=tol)
     assert {0, 1, 2, 3} <= set(sol.kind.tolist())
     with libm_numpy():
-        ref = fit_helix._solve_helix_numpy(t0, t1, c, chord_tolerance=tol)
+        ref = fit_reference.solve_helix_numpy(t0, t1, c, chord_tolerance=tol)
     assert_same(sol, ref)
 
 
@@ -464,7 +464,7 @@ def test_chain_kernel_matches_numpy(seed, budget):
     tol = budget * rng.uniform(0.5, 1.5, S) * 0.01
     sol = fit_helix.solve_chain(P, T, n, tol)
     with libm_numpy():
-        ref = fit_helix._solve_chain_numpy(P, T, n, tol)
+        ref = fit_reference.solve_chain_numpy(P, T, n, tol)
     assert_same(sol, ref)
 
 
@@ -483,7 +483,7 @@ def test_assemble_kernel_matches_numpy(seed):
     roots, t = rng.normal(size=(S, 3)), rng.normal(size=(S, 3))
     helix, table = assemble(roots, t, phi, lengths, n)
     with libm_numpy():
-        ref_helix, ref_table = fit_state._assemble_numpy(roots, t, phi, lengths, n)
+        ref_helix, ref_table = fit_reference.assemble_numpy(roots, t, phi, lengths, n)
     for name in ("root_positions", "root_frames", "lengths", "n_elements"):
         np.testing.assert_array_equal(getattr(helix, name), getattr(ref_helix, name))
     for name in ("elem_offsets", "start", "length", "Omega", "strand_length"):
@@ -520,8 +520,8 @@ def test_error_kernels_match_numpy(seed, tol):
     s = frac * helix.strand_lengths[strand] + 2e-3 * rng.normal(size=len(frac))
     d = closest_distances(table, pos, strand, s, iterations=4)
     with libm_numpy():
-        ref = fit_error._strand_errors_numpy(sub, offsets, pos, frac, active, helix.n_elements[active], tols, full)
-        ref_d = fit_error._closest_distances_numpy(table, pos, strand, s, iterations=4)
+        ref = fit_reference.strand_errors_numpy(sub, offsets, pos, frac, active, helix.n_elements[active], tols, full)
+        ref_d = fit_reference.closest_distances_numpy(table, pos, strand, s, iterations=4)
     assert_same(got, ref)
     assert_same(d, ref_d)
 
@@ -538,8 +538,8 @@ def test_sampling_and_relaxation_kernels_match_numpy(seed):
     pts = np.cumsum(rng.normal(size=(offsets[-1], 3)) * rng.uniform(1e-3, 1e-1), axis=0)
     pts[offsets[1] + 1] = pts[offsets[1]]                            # an exact repeat
     pts[offsets[3] + 1] = pts[offsets[3]] + 1e-13                    # a near repeat
-    assert_same(vertex_arc_lengths(pts, offsets), fit_sampling._vertex_arc_lengths_numpy(pts, offsets))
-    assert_same(drop_repeated_vertices(pts, offsets), fit_sampling._drop_repeated_vertices_numpy(pts, offsets))
+    assert_same(vertex_arc_lengths(pts, offsets), fit_reference.vertex_arc_lengths_numpy(pts, offsets))
+    assert_same(drop_repeated_vertices(pts, offsets), fit_reference.drop_repeated_vertices_numpy(pts, offsets))
     p, off, _ = drop_repeated_vertices(pts[:offsets[2]], offsets[:3])
     p, off = ensure_four_vertices(p, off)
     curves = PolylineCurves(p, off)
@@ -547,7 +547,7 @@ def test_sampling_and_relaxation_kernels_match_numpy(seed):
     s = rng.uniform(-0.1, 1.1, 400) * curves.lengths[strand]
     s[:20] = curves.arc[off[strand[:20]] + 2]
     s[20:30] = curves.lengths[strand[20:30]]
-    assert_same(curves.evaluate(strand, s), curves._evaluate_numpy(strand, s))
+    assert_same(curves.evaluate(strand, s), fit_reference.evaluate_numpy(curves, strand, s))
     S, N = 7, 8
     Q = np.cumsum(rng.normal(size=(S, N + 1, 3)), axis=1)
     T = unit(rng.normal(size=(S, N + 1, 3)))
@@ -555,4 +555,4 @@ def test_sampling_and_relaxation_kernels_match_numpy(seed):
     T[1, 2:6] = T[1, 2]
     n = rng.integers(1, N + 1, S)
     np.testing.assert_array_equal(fit_cohelicity._project(Q, T, n, 1e-24),
-                                  fit_cohelicity._project_numpy(Q, T[:, 1:] - T[:, :-1], n, 1e-24))
+                                  fit_reference.project_numpy(Q, T[:, 1:] - T[:, :-1], n, 1e-24))

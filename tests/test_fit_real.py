@@ -4,13 +4,14 @@ import numpy as np
 import pytest
 from test_fit import libm_numpy
 
-from groomtool.fit import cohelicity, error, fitter, helix, sampling, state
+from groomtool.fit import cohelicity, fitter, sampling
 from groomtool.fit import fit_groom
 from groomtool.fit.error import closest_distances
 from groomtool.fit.sampling import vertex_arc_lengths
-from groomtool.fit.state import curve_table
 from groomtool.groom import Groom
 from groomtool.io import read_data
+from reference import fit as fit_reference
+from reference.fit import curve_table
 
 
 
@@ -77,16 +78,16 @@ def numpy_pipeline(monkeypatch):
         mask = np.arange(N)[None, :] < n[:, None]
         padded_phi, padded_l = np.zeros((len(n), N, 3)), np.zeros((len(n), N))
         padded_phi[mask], padded_l[mask] = phi, lengths
-        return state._assemble_numpy(roots, tangents, padded_phi, padded_l, n, frames)
+        return fit_reference.assemble_numpy(roots, tangents, padded_phi, padded_l, n, frames)
 
-    monkeypatch.setattr(fitter, "solve_chain", helix._solve_chain_numpy)
+    monkeypatch.setattr(fitter, "solve_chain", fit_reference.solve_chain_numpy)
     monkeypatch.setattr(fitter, "assemble_flat", assemble_flat)
-    monkeypatch.setattr(fitter, "strand_errors", error._strand_errors_numpy)
-    monkeypatch.setattr(fitter, "drop_repeated_vertices", sampling._drop_repeated_vertices_numpy)
-    monkeypatch.setattr(fitter, "vertex_arc_lengths", sampling._vertex_arc_lengths_numpy)
-    monkeypatch.setattr(sampling, "vertex_arc_lengths", sampling._vertex_arc_lengths_numpy)
-    monkeypatch.setattr(sampling.PolylineCurves, "evaluate", sampling.PolylineCurves._evaluate_numpy)
-    monkeypatch.setattr(cohelicity, "_project", lambda X, T, n, eps: cohelicity._project_numpy(
+    monkeypatch.setattr(fitter, "strand_errors", fit_reference.strand_errors_numpy)
+    monkeypatch.setattr(fitter, "drop_repeated_vertices", fit_reference.drop_repeated_vertices_numpy)
+    monkeypatch.setattr(fitter, "vertex_arc_lengths", fit_reference.vertex_arc_lengths_numpy)
+    monkeypatch.setattr(sampling, "vertex_arc_lengths", fit_reference.vertex_arc_lengths_numpy)
+    monkeypatch.setattr(sampling.PolylineCurves, "evaluate", fit_reference.evaluate_numpy)
+    monkeypatch.setattr(cohelicity, "_project", lambda X, T, n, eps: fit_reference.project_numpy(
         X, T[:, 1:] - T[:, :-1], n, eps))
 
 

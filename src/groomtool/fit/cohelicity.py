@@ -17,7 +17,8 @@ A A^T is the Gram matrix of the constraint gradients: positive semi-definite, si
 dt_i = 0 (a straight piece has no constraint).  It is regularised by EPS on the diagonal, which only
 shrinks the moves (lambda_i dt_i) and leaves a residual g_i <= |Q_{i+1} - Q_i| sqrt(EPS) where
 |dt_i|^2 < EPS.  Solved by the Thomas algorithm (no pivoting needed: SPD), a numba kernel strand by
-strand (``_project_numpy``: the same, vectorised over strands, kept as the reference).
+strand (``project_numpy`` in tests/reference/fit.py: the same, vectorised over strands, the tests'
+reference).
 """
 
 from __future__ import annotations
@@ -61,7 +62,7 @@ def constraint_residuals(points, tangents, n_elements=None) -> np.ndarray:
 
 
 def _project(X, T, n_elements, eps):
-    """:func:`_project_numpy` with V = T[:, 1:] - T[:, :-1] (numba)."""
+    """The projection above with V = T[:, 1:] - T[:, :-1] (numba)."""
     out = np.empty(X.shape)
     _project_kernel(np.ascontiguousarray(X), np.ascontiguousarray(T), np.ascontiguousarray(n_elements, dtype=np.int64),
                     eps, out)
@@ -70,7 +71,7 @@ def _project(X, T, n_elements, eps):
 
 @njit(cache=True, error_model="numpy")
 def _project_kernel(X, T, n_elements, eps, out):
-    """Strand by strand, the operations of :func:`_project_numpy` (padding included)."""
+    """Strand by strand, the operations of the reference ``project_numpy`` (padding included)."""
     S, N1, _ = X.shape
     N = N1 - 1
     V, dx = np.zeros((N, 3)), np.zeros((N, 3))
@@ -104,42 +105,3 @@ def _project_kernel(X, T, n_elements, eps, out):
                     out[s, j, c] -= lam[j] * V[j, c]
 
 
-def _project_numpy(X, V, n_elements, eps):
-    """Closest X' to X, X'_0 = X_0, with (X'_{i+1} - X'_i) . V_i = 0 for i < n: the KKT system above.
-
-    X (S, N+1, 3); V (S, N, 3) the constraint directions (dt_i); padding has V = 0.
-    """
-    S, N1, _ = X.shape
-    N = N1 - 1
-    real = np.arange(N)[None, :] < n_elements[:, None]
-    V = np.where(real[..., None], V, 0.0)
-    dx = np.where(real[..., None], X[:, 1:] - X[:, :-1], 0.0)
-    diag = 2.0 * dot(V, V)
-    diag[:, 0] *= 0.5
-    diag += eps
-    off = -dot(V[:, :-1], V[:, 1:])
-    rhs = -dot(dx, V)
-    lam = _thomas(diag, off, rhs)
-    move = lam[..., None] * V
-    out = X.copy()
-    out[:, 1:] += move
-    out[:, 1:-1] -= move[:, 1:]
-    return out
-
-
-def _thomas(diag, off, rhs):
-    """Solve the symmetric tridiagonal systems (diag, off) lam = rhs, batched over rows."""
-    S, N = diag.shape
-    cp = np.empty((S, N))
-    rp = np.empty((S, N))
-    cp[:, 0] = diag[:, 0]
-    rp[:, 0] = rhs[:, 0]
-    for i in range(1, N):
-        w = off[:, i - 1] / cp[:, i - 1]
-        cp[:, i] = diag[:, i] - w * off[:, i - 1]
-        rp[:, i] = rhs[:, i] - w * rp[:, i - 1]
-    lam = np.empty((S, N))
-    lam[:, N - 1] = rp[:, N - 1] / cp[:, N - 1]
-    for i in range(N - 2, -1, -1):
-        lam[:, i] = (rp[:, i] - off[:, i] * lam[:, i + 1]) / cp[:, i]
-    return lam

@@ -16,8 +16,8 @@ taken instead.  Started from the point that corresponds to the vertex (its arc-l
 finds the local closest point: the one that corresponds to the vertex.
 
 :func:`closest_distances` and :func:`strand_errors` run numba kernels, one vertex at a time, with
-the operations (and summation orders) of the array versions ``_closest_distances_numpy`` /
-``_strand_errors_numpy``, kept as references.
+the operations (and summation orders) of the array versions ``closest_distances_numpy`` /
+``strand_errors_numpy``, kept as the tests' references in tests/reference/fit.py.
 """
 
 from __future__ import annotations
@@ -25,41 +25,10 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from .kernels import cross
 from .state import CurveTable
 
 PRECHECK_STRIDE = 4      # vertex stride of the cheap first error check of a pass
 CHUNK = 1 << 17          # vertices per batch of closest-point queries
-
-
-class ElementRows:
-    """Per-element rows (3, E): C_e, T_e, u1, u2; and w (E,), l (E,)."""
-
-    def __init__(self, table: CurveTable):
-        w = np.sqrt((table.Omega * table.Omega).sum(axis=1))
-        a = table.Omega / np.where(w > 0, w, 1.0)[:, None]
-        u1 = cross(a, table.T)
-        u2 = cross(a, u1)
-        self.rows = np.ascontiguousarray(np.concatenate([table.C, table.T, u1, u2], axis=1).T)  # (12, E)
-        self.w = np.where(w > 0, w, 1.0)
-        self.length = table.length
-
-
-def _point(soa: ElementRows, e, t, want_derivatives=True):
-    """C(t) (3, P) and, if asked, T(t), C''(t) on elements e at local parameters t."""
-    rows = soa.rows[:, e]
-    C0, T0, u1, u2 = rows[0:3], rows[3:6], rows[6:9], rows[9:12]
-    w = soa.w[e]
-    half = 0.5 * w * t
-    sh, ch = np.sin(half), np.cos(half)
-    sn = 2.0 * sh * ch                 # sin(theta)
-    vc = 2.0 * sh * sh                 # 1 - cos(theta)
-    C = C0 + t * T0 + (vc / w) * u1 + (t - sn / w) * u2
-    if not want_derivatives:
-        return C
-    T = T0 + sn * u1 + vc * u2
-    K = (w * (1.0 - vc)) * u1 + (w * sn) * u2
-    return C, T, K
 
 
 def locate(table: CurveTable, strand, s):
@@ -72,13 +41,6 @@ def locate(table: CurveTable, strand, s):
     e = np.searchsorted(key, s + base[strand], side="right") - 1
     e = np.clip(e, table.elem_offsets[strand], table.elem_offsets[strand + 1] - 1)
     return e, np.clip(s - table.start[e], 0.0, table.length[e])
-
-
-def evaluate_table(table: CurveTable, strand, s):
-    """Points (P, 3), unit tangents (P, 3) and C'' (P, 3) at arc lengths s on strands."""
-    e, t = locate(table, strand, s)
-    C, T, K = _point(ElementRows(table), e, t)
-    return C.T, T.T, K.T
 
 
 def closest_distances(table: CurveTable, points, strand, s_guess=None, elem=None, t=None, iterations: int = 2):
@@ -104,37 +66,6 @@ def _element_arrays(table: CurveTable):
     return tuple(np.ascontiguousarray(a, dtype=np.float64) for a in (table.C, table.T, table.Omega, table.length))
 
 
-def _closest_distances_numpy(table: CurveTable, points, strand, s_guess=None, elem=None, t=None,
-                             iterations: int = 2, rows: ElementRows | None = None):
-    """Reference for :func:`closest_distances`, vectorised over points (numpy); ``rows``: the table's
-    :class:`ElementRows` when already built."""
-    points = np.ascontiguousarray(np.asarray(points, dtype=np.float64).T)
-    strand = np.asarray(strand, dtype=np.int64)
-    if elem is None:
-        elem, t = locate(table, strand, s_guess)
-    e = np.asarray(elem, dtype=np.int64).copy()
-    t = np.asarray(t, dtype=np.float64).copy()
-    first = table.elem_offsets[strand]
-    last = table.elem_offsets[strand + 1] - 1
-    soa = rows if rows is not None else ElementRows(table)
-    for _ in range(iterations):
-        C, T, K = _point(soa, e, t)
-        r = C - points
-        g = (r * T).sum(axis=0)
-        dg = 1.0 + (r * K).sum(axis=0)
-        t = t - np.where(dg > 0.2, g / np.maximum(dg, 0.2), g)
-        back = (t < 0.0) & (e > first)
-        e[back] -= 1
-        t[back] += soa.length[e[back]]
-        ahead = (t > soa.length[e]) & (e < last)
-        t[ahead] -= soa.length[e[ahead]]
-        e[ahead] += 1
-        t = np.clip(t, 0.0, soa.length[e])
-    C = _point(soa, e, t, want_derivatives=False)
-    d = C - points
-    return np.sqrt((d * d).sum(axis=0)), e, t
-
-
 def strand_errors(table, offsets, vpoints, vfrac, active, n_act, tol, full, stride: int = PRECHECK_STRIDE):
     """Max and mean vertex distance (S',) of the strands ``active`` of the groom (offsets, vpoints,
     vfrac: vertex arc-length fractions) to their curves in ``table`` (fitted with n_act elements).
@@ -153,58 +84,6 @@ def strand_errors(table, offsets, vpoints, vfrac, active, n_act, tol, full, stri
     return mx, mn
 
 
-def _strand_errors_numpy(table, offsets, vpoints, vfrac, active, n_act, tol, full, stride: int = PRECHECK_STRIDE):
-    """Reference for :func:`strand_errors` (numpy)."""
-    vidx, owner, vcount = _ranges(offsets, active)
-    starts = np.cumsum(vcount) - vcount
-    local = np.arange(len(vidx)) - starts[owner]
-    sub = (local % stride == 0) | (local == vcount[owner] - 1)
-    mx, mn = np.zeros(len(active)), np.zeros(len(active))
-    rows = ElementRows(table)
-    d = vertex_distances(table, rows, vpoints, vfrac, n_act, vidx[sub], owner[sub])
-    sub_max = np.zeros(len(active))
-    np.maximum.at(sub_max, owner[sub], d)
-    mean_sub = np.bincount(owner[sub], d, minlength=len(active)) / np.bincount(owner[sub], minlength=len(active))
-    again = (sub_max <= tol) | full
-    mx[~again], mn[~again] = sub_max[~again], mean_sub[~again]
-    rest = again[owner] & ~sub
-    if np.any(again):
-        d_all = np.zeros(len(vidx))
-        d_all[sub] = d
-        d_all[rest] = vertex_distances(table, rows, vpoints, vfrac, n_act, vidx[rest], owner[rest])
-        ids = np.nonzero(again)[0]
-        d_all = d_all[again[owner]]
-        cnt = vcount[ids]
-        st = np.cumsum(cnt) - cnt
-        mx[ids] = np.maximum.reduceat(d_all, st)
-        mn[ids] = np.add.reduceat(d_all, st) / cnt
-    return mx, mn
-
-
-def vertex_distances(table, rows, vpoints, vfrac, n_act, vidx, owner, iterations=2, chunk: int = CHUNK):
-    """Distances of vertices vidx to their strand (owner: index in the pass), from the point that
-    corresponds to them: sample interval i <-> element i at the same fraction.  In chunks of
-    ``chunk`` vertices (bounded memory, better cache use)."""
-    dist = np.empty(len(vidx))
-    for a in range(0, len(vidx), chunk):
-        v, o = vidx[a:a + chunk], owner[a:a + chunk]
-        u = vfrac[v] * n_act[o]
-        i = np.minimum(u.astype(np.int64), n_act[o] - 1)
-        e = table.elem_offsets[o] + i
-        dist[a:a + chunk], _, _ = _closest_distances_numpy(table, vpoints[v], o, elem=e, t=(u - i) * table.length[e],
-                                                    iterations=iterations, rows=rows)
-    return dist
-
-
-def _ranges(offsets, ids):
-    """Concatenated index ranges offsets[i]:offsets[i+1] for i in ids, and their owner positions."""
-    counts = offsets[ids + 1] - offsets[ids]
-    owner = np.repeat(np.arange(len(ids)), counts)
-    starts = np.repeat(offsets[ids], counts)
-    local = np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)
-    return starts + local, owner, counts
-
-
 # --------------------------------------------------------------------------- numba kernels
 @njit(cache=True, error_model="numpy")
 def _max_s(a, b):
@@ -215,7 +94,7 @@ def _max_s(a, b):
 @njit(cache=True, error_model="numpy")
 def _closest_s(C, T, Om, length, px, py, pz, e, t, first, last, iterations):
     """Distance from (px, py, pz) to the curve and the foot (e, t): the Newton steps of
-    :func:`_closest_distances_numpy` on one point (:class:`ElementRows` and :func:`_point` inline)."""
+    reference ``closest_distances_numpy`` on one point (its ``ElementRows`` and ``_point`` inline)."""
     for it in range(iterations + 1):
         O0, O1, O2 = Om[e, 0], Om[e, 1], Om[e, 2]
         w = np.sqrt(O0 * O0 + O1 * O1 + O2 * O2)

@@ -32,7 +32,8 @@ t0: one full turn about c (Phi = 2 pi c/|c|, l = |c| / (t0 . c/|c|)).  t1 = -t0 
 taken along the chord, and the same equation gives the half turn about t0 x c.
 
 :func:`solve_helix` and :func:`solve_chain` run numba kernels, one element at a time, with the
-operations of the array versions ``_solve_helix_numpy`` / ``_solve_chain_numpy`` (kept as references).
+operations of the array versions ``solve_helix_numpy`` / ``solve_chain_numpy`` (the tests' references,
+in tests/reference/fit.py).
 The kernels call libm's arctan2 and arcsin; numpy may use its own SIMD versions (it does with
 AVX-512), which differ in the last bit: the results then agree to round-off, not bit for bit.
 """
@@ -64,25 +65,6 @@ class HelixSolution:
     kind: np.ndarray
 
 
-def _unit(v):
-    n = np.sqrt(dot(v, v))
-    return v / np.maximum(n, _TINY)[..., None], n
-
-
-def _F(phi, d, mb1, mb2, gamma):
-    """F(phi) and F'(phi); m_a = a.m/2, m_e = e.m/2 with a' = e, e' = -a."""
-    c, s = np.cos(phi), np.sin(phi)
-    ma = c * mb1 + s * mb2
-    me = c * mb2 - s * mb1
-    h = np.arctan2(d, me)
-    H = h * ma
-    dh = d * ma / (d * d + me * me)
-    dH = dh * ma + h * me
-    F = np.arctan2(d, H) - gamma + phi
-    dF = 1.0 - d * dH / (d * d + H * H)
-    return F, dF
-
-
 def solve_helix(t0, t1, chord, chord_tolerance=None, max_iter: int = 100) -> HelixSolution:
     """Solve exp([Phi]x) t0 = t1, chord = l (I + f2 [Phi]x + f3 [Phi]x^2) t0 for (Phi, l), batched.
 
@@ -108,98 +90,6 @@ def solve_helix(t0, t1, chord, chord_tolerance=None, max_iter: int = 100) -> Hel
     return out
 
 
-def _solve_helix_numpy(t0, t1, chord, chord_tolerance=None, max_iter: int = 100) -> HelixSolution:
-    """Reference for :func:`solve_helix`, vectorised over elements (numpy)."""
-    t0, _ = _unit(np.asarray(t0, dtype=np.float64).reshape(-1, 3))
-    t1, _ = _unit(np.asarray(t1, dtype=np.float64).reshape(-1, 3))
-    chord = np.asarray(chord, dtype=np.float64).reshape(-1, 3)
-    E = len(t0)
-    phi_out = np.zeros((E, 3))
-    length = np.zeros(E)
-    iterations = np.zeros(E, dtype=np.int64)
-    kind = np.zeros(E, dtype=np.int64)
-
-    n, D = _unit(t1 - t0)
-    d = 0.5 * D
-
-    # ---- t1 == t0 to round-off: straight piece (planar arc), or one full turn about the chord
-    ch, cl = _unit(chord)
-    mh, _ = _unit(t0 + t1)
-    along = dot(ch, mh) >= 1.0 - 5e-13          # chord within 1e-6 rad of the bisector
-    arc = (d < STRAIGHT_D) & along
-    if np.any(arc):
-        # the minimal rotation (least twist): a planar arc of winding 2 asin(d), chord l sin(h)/h
-        axis, _ = _unit(cross(t0[arc], t1[arc]))
-        h = np.arcsin(np.minimum(d[arc], 1.0))
-        phi_out[arc] = (2.0 * h)[:, None] * axis
-        length[arc] = cl[arc] / np.sinc(h / np.pi)
-        kind[arc] = 1
-    flat = (d < FLAT_D) & ~arc
-    if np.any(flat):
-        idx = np.nonzero(flat)[0]
-        cos_a = dot(ch[idx], t0[idx])
-        turn = cos_a > 1e-12
-        kind[idx[turn]] = 2
-        phi_out[idx[turn]] = 2.0 * np.pi * ch[idx[turn]]
-        length[idx[turn]] = cl[idx[turn]] / cos_a[turn]
-        kind[idx[~turn]] = 3
-        length[idx[~turn]] = cl[idx[~turn]]
-
-    # ---- general case
-    gen = np.nonzero(~flat & ~arc)[0]
-    if len(gen):
-        t0g, t1g, cg, ng, dg = t0[gen], t1[gen], chord[gen], n[gen], d[gen]
-        m = t0g + t1g
-        c_pi = cg - dot(cg, ng)[:, None] * ng          # chord projected on Pi
-        mh, mlen = _unit(m)
-        anti = mlen < ANTIPODAL_M
-        if np.any(anti):
-            mh[anti], _ = _unit(c_pi[anti])
-        b2 = mh
-        b1 = cross(b2, ng)
-        half_m = 0.5 * m
-        mb1, mb2 = dot(half_m, b1), dot(half_m, b2)
-        gamma = np.arctan2(dot(c_pi, b2), dot(c_pi, b1))
-        if chord_tolerance is not None:
-            budget = np.broadcast_to(np.asarray(chord_tolerance, dtype=np.float64), (E,))[gen]
-            angle = budget / np.maximum(np.sqrt(dot(c_pi, c_pi)), _TINY)
-            F0, _ = _F(np.zeros(len(gen)), dg, mb1, mb2, gamma)
-            gamma = gamma + np.where(np.abs(F0) <= angle, F0, 0.0)
-        lo, hi = gamma - np.pi, gamma.copy()
-        # initial guess: the small-winding asymptote F ~ d^2 tan(phi) / (3 M^2) - (gamma - pi/2)
-        M2 = np.maximum(1.0 - dg * dg, 0.0)
-        x = np.arctan2(3.0 * M2 * (gamma - 0.5 * np.pi), dg * dg)
-        x = np.where((x > lo) & (x < hi), x, gamma - 0.5 * np.pi)
-        active = np.arange(len(gen))
-        its = np.zeros(len(gen), dtype=np.int64)
-        for _ in range(max_iter):
-            if len(active) == 0:
-                break
-            xa, la, ha = x[active], lo[active], hi[active]
-            F, dF = _F(xa, dg[active], mb1[active], mb2[active], gamma[active])
-            neg = F < 0.0
-            la = np.where(neg, xa, la)
-            ha = np.where(neg, ha, xa)
-            step = F / np.maximum(dF, _TINY)
-            xn = xa - step
-            tol = 2e-16 * (1.0 + np.abs(xa))
-            done = (np.abs(step) <= tol) | (ha - la <= 2.0 * tol)
-            outside = ~((xn > la) & (xn < ha)) & ~done
-            xn = np.where(outside, 0.5 * (la + ha), xn)
-            x[active], lo[active], hi[active] = xn, la, ha
-            its[active] += 1
-            active = active[~done]
-        a = np.cos(x)[:, None] * b1 + np.sin(x)[:, None] * b2
-        e = cross(ng, a)
-        ma = dot(half_m, a)
-        me = dot(half_m, e)
-        h = np.arctan2(dg, me)
-        phi_out[gen] = (2.0 * h)[:, None] * a
-        length[gen] = np.sqrt(dot(c_pi, c_pi)) / np.sqrt(ma * ma + (dg / h) ** 2)
-        iterations[gen] = its
-    return HelixSolution(phi_out, length, iterations, kind)
-
-
 def rotate(phi, v):
     """exp([Phi]x) v = v + f1 Phi x v + f2 Phi x (Phi x v), f_n = f_n(|Phi|^2)."""
     f1, f2, _ = f123(dot(phi, phi))
@@ -221,11 +111,6 @@ def helix_residuals(phi, length, t0, t1, chord):
     return rt, rc
 
 
-def cohelicity_defect(t0, t1, chord):
-    """(P1 - P0) . (t1 - t0): zero iff the pair can be joined by a circular helix."""
-    return dot(chord, np.asarray(t1) - np.asarray(t0))
-
-
 def solve_chain(P, T, n_elements, chord_tolerance, max_iter: int = 100) -> HelixSolution:
     """Helices along strands, planar arcs where within tolerance, with error feedback; flat (E,).
 
@@ -244,23 +129,6 @@ def solve_chain(P, T, n_elements, chord_tolerance, max_iter: int = 100) -> Helix
     return out
 
 
-def _solve_chain_numpy(P, T, n_elements, chord_tolerance) -> HelixSolution:
-    """Reference for :func:`solve_chain`: a loop over i, batched over strands (numpy)."""
-    S, N1, _ = P.shape
-    N = N1 - 1
-    phi, lengths = np.zeros((S, N, 3)), np.zeros((S, N))
-    its, kind = np.zeros((S, N), dtype=np.int64), np.zeros((S, N), dtype=np.int64)
-    C = P[:, 0].copy()
-    tol = np.broadcast_to(np.asarray(chord_tolerance, dtype=np.float64), (S,))
-    for i in range(N):
-        act = np.nonzero(i < n_elements)[0]
-        sol = _solve_helix_numpy(T[act, i], T[act, i + 1], P[act, i + 1] - C[act], tol[act])
-        phi[act, i], lengths[act, i], its[act, i], kind[act, i] = sol.phi, sol.length, sol.iterations, sol.kind
-        C[act] += helix_chord(sol.phi, sol.length, T[act, i])
-    mask = np.arange(N)[None, :] < n_elements[:, None]
-    return HelixSolution(phi[mask], lengths[mask], its[mask], kind[mask])
-
-
 # --------------------------------------------------------------------------- numba kernels
 @njit(cache=True, error_model="numpy")
 def _max_s(a, b):
@@ -270,13 +138,13 @@ def _max_s(a, b):
 
 @njit(cache=True, error_model="numpy")
 def _F_s(phi, d, mb1, mb2, gamma):
-    """:func:`_F` on scalars."""
+    """F(phi) and F'(phi) (above; the reference's ``_F``) on scalars."""
     return _F_cs(np.cos(phi), np.sin(phi), phi, d, mb1, mb2, gamma)
 
 
 @njit(cache=True, error_model="numpy")
 def _F_cs(c, s, phi, d, mb1, mb2, gamma):
-    """:func:`_F` with c = cos(phi), s = sin(phi) given."""
+    """:func:`_F_s` with c = cos(phi), s = sin(phi) given."""
     ma = c * mb1 + s * mb2
     me = c * mb2 - s * mb1
     h = np.arctan2(d, me)
@@ -290,14 +158,14 @@ def _F_cs(c, s, phi, d, mb1, mb2, gamma):
 
 @njit(cache=True, error_model="numpy")
 def _unit_s(a0, a1, a2):
-    """v / max(|v|, tiny), as :func:`_unit`."""
+    """v / max(|v|, tiny), as the reference's ``_unit``."""
     nrm = _max_s(np.sqrt(a0 * a0 + a1 * a1 + a2 * a2), _TINY)
     return a0 / nrm, a1 / nrm, a2 / nrm
 
 
 @njit(cache=True, error_model="numpy")
 def _solve_one(a0, a1, a2, b0, b1, b2, c0, c1, c2, budget, gated, max_iter, k, phi, length, iterations, kind):
-    """One element of :func:`_solve_helix_numpy` (same operations), written at index k; the tangents
+    """One element of the reference ``solve_helix_numpy`` (same operations), written at index k; the tangents
     a = t0, b = t1 normalised by :func:`_unit_s`."""
     n0, n1, n2 = b0 - a0, b1 - a1, b2 - a2
     D = np.sqrt(n0 * n0 + n1 * n1 + n2 * n2)

@@ -17,8 +17,6 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from .kernels import dot
-
 
 def drop_repeated_vertices(points, offsets, relative: float = 1e-6, absolute: float = 1e-12):
     """Remove vertices closer to their predecessor than max(absolute, relative * strand length).
@@ -44,20 +42,6 @@ def _kept(points, offsets, keep):
     return points[kept], csum[offsets].astype(np.int64), kept
 
 
-def _drop_repeated_vertices_numpy(points, offsets, relative: float = 1e-6, absolute: float = 1e-12):
-    """Reference for :func:`drop_repeated_vertices` (numpy)."""
-    points = np.asarray(points, dtype=np.float64)
-    offsets = np.asarray(offsets, dtype=np.int64)
-    V = len(points)
-    keep = np.ones(V, dtype=bool)
-    if V > 1:
-        _, lengths = _vertex_arc_lengths_numpy(points, offsets)
-        strand = np.repeat(np.arange(len(offsets) - 1), np.diff(offsets))
-        seg = np.linalg.norm(np.diff(points, axis=0), axis=1)
-        keep[1:] = seg >= np.maximum(absolute, relative * lengths[strand[1:]])
-    return _kept(points, offsets, keep)
-
-
 def ensure_four_vertices(points, offsets):
     """Strands of 2 or 3 vertices: insert points (halving the longest segments) to reach 4."""
     counts = np.diff(offsets)
@@ -81,21 +65,6 @@ def vertex_arc_lengths(points, offsets) -> tuple[np.ndarray, np.ndarray]:
     offsets = np.ascontiguousarray(offsets, dtype=np.int64)
     s, lengths = np.empty(len(points)), np.zeros(len(offsets) - 1)
     _arc_kernel(points, offsets, s, lengths)
-    return s, lengths
-
-
-def _vertex_arc_lengths_numpy(points, offsets) -> tuple[np.ndarray, np.ndarray]:
-    """Reference for :func:`vertex_arc_lengths` (numpy)."""
-    counts = np.diff(offsets)
-    d = np.zeros(len(points))
-    if len(points) > 1:
-        d[1:] = np.linalg.norm(np.diff(points, axis=0), axis=1)
-    d[offsets[:-1][counts > 0]] = 0.0
-    csum = np.cumsum(d)
-    start = np.repeat(csum[offsets[:-1][counts > 0]], counts[counts > 0])
-    s = csum - start
-    last = np.maximum(offsets[1:] - 1, 0)
-    lengths = np.where(counts > 0, s[last], 0.0)
     return s, lengths
 
 
@@ -128,29 +97,6 @@ class PolylineCurves:
         pts, tan = np.empty((len(s), 3)), np.empty((len(s), 3))
         _evaluate_kernel(self.points, self.arc, self._key, self._base, self._u, self.offsets, self.lengths,
                          strand, s, pts, tan)
-        return pts, tan
-
-    def _evaluate_numpy(self, strand, s):
-        """Reference for :meth:`evaluate`, vectorised over samples (numpy)."""
-        strand = np.asarray(strand, dtype=np.int64)
-        s = np.clip(np.asarray(s, dtype=np.float64), 0.0, self.lengths[strand])
-        first = self.offsets[strand]
-        n = self.counts[strand]
-        v = np.searchsorted(self._key, s + self._base[strand], side="right") - 1
-        seg = np.clip(v - first, 0, n - 2)
-        w = first + np.clip(seg - 1, 0, n - 4)                # window start: vertices w..w+3
-        x0, x1, x2, x3 = (self.arc[w + j] for j in range(4))
-        u0, u1, u2 = self._u[w], self._u[w + 1], self._u[w + 2]
-        d2 = (u1 - u0) / (x2 - x0)[:, None]
-        d3 = ((u2 - u1) / (x3 - x1)[:, None] - d2) / (x3 - x0)[:, None]
-        a0 = (s - x0)[:, None]
-        a1 = (s - x1)[:, None]
-        a2 = (s - x2)[:, None]
-        q2 = d2 + a2 * d3
-        q1 = u0 + a1 * q2
-        pts = self.points[w] + a0 * q1
-        tan = q1 + a0 * (q2 + a1 * d3)
-        tan /= np.sqrt(dot(tan, tan))[:, None]
         return pts, tan
 
 

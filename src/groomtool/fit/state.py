@@ -10,8 +10,8 @@ the same closed form as :mod:`groomtool.rods.superhelix`:
 
     C_{j+1} = C_j + l_j (I + f2 [Phi_j]x + f3 [Phi_j]x^2) t_j,     f_n = f_n(|Phi_j|^2).
 
-:func:`assemble` runs a numba kernel (strand by strand); ``_assemble_numpy`` is the array version
-it reproduces (the 3x3 products with fused multiply-adds, as numpy's matmul through OpenBLAS).
+:func:`assemble` runs a numba kernel (strand by strand); ``assemble_numpy`` (tests/reference/fit.py) is
+the array version it reproduces (the 3x3 products with fused multiply-adds, as numpy's matmul through OpenBLAS).
 """
 
 from __future__ import annotations
@@ -21,8 +21,8 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-from ..rods.superhelix import SuperHelix, kinematics
-from .kernels import cross, dot, f123, f123_s, fma
+from ..rods.superhelix import SuperHelix
+from .kernels import cross, dot, f123_s, fma
 
 
 def root_frames(tangents) -> np.ndarray:
@@ -35,25 +35,6 @@ def root_frames(tangents) -> np.ndarray:
     n1 /= np.linalg.norm(n1, axis=1)[:, None]
     n2 = cross(t, n1)
     return np.stack([t, n1, n2], axis=2)
-
-
-def rotation_matrices(phi) -> np.ndarray:
-    """exp([Phi]x) = I + f1 [Phi]x + f2 [Phi]x^2 for phi (..., 3) -> (..., 3, 3)."""
-    phi = np.asarray(phi, dtype=np.float64)
-    x = dot(phi, phi)
-    a, b, _ = f123(x)
-    out = np.empty(phi.shape[:-1] + (3, 3))
-    px, py, pz = phi[..., 0], phi[..., 1], phi[..., 2]
-    out[..., 0, 0] = 1.0 + b * (px * px - x)
-    out[..., 1, 1] = 1.0 + b * (py * py - x)
-    out[..., 2, 2] = 1.0 + b * (pz * pz - x)
-    out[..., 0, 1] = -a * pz + b * px * py
-    out[..., 1, 0] = a * pz + b * px * py
-    out[..., 0, 2] = a * py + b * px * pz
-    out[..., 2, 0] = -a * py + b * px * pz
-    out[..., 1, 2] = -a * px + b * py * pz
-    out[..., 2, 1] = a * px + b * py * pz
-    return out
 
 
 @dataclass
@@ -147,7 +128,7 @@ def _assemble_kernel(R0, roots, phi, lengths, n_elements, padded, q, start, C, T
             a0 += l * (r00 + f2 * u0 + f3 * v0)
             a1 += l * (r10 + f2 * u1 + f3 * v1)
             a2 += l * (r20 + f2 * u2 + f3 * v2)
-            # R <- exp([Phi]x) R, exp([Phi]x) = I + f1 [Phi]x + f2 [Phi]x^2 (as rotation_matrices)
+            # R <- exp([Phi]x) R, exp([Phi]x) = I + f1 [Phi]x + f2 [Phi]x^2 (as the reference's rotation_matrices)
             q00 = 1.0 + f2 * (p0 * p0 - x)
             q11 = 1.0 + f2 * (p1 * p1 - x)
             q22 = 1.0 + f2 * (p2 * p2 - x)
@@ -166,54 +147,3 @@ def _assemble_kernel(R0, roots, phi, lengths, n_elements, padded, q, start, C, T
             k += 1
 
 
-def _assemble_numpy(root_positions, root_tangents, phi, lengths, n_elements, frames=None):
-    """Reference for :func:`assemble`, vectorised over strands (numpy)."""
-    phi = np.asarray(phi, dtype=np.float64)
-    lengths = np.asarray(lengths, dtype=np.float64)
-    n_elements = np.asarray(n_elements, dtype=np.int64)
-    S, N = lengths.shape
-    R0 = root_frames(root_tangents) if frames is None else np.asarray(frames, dtype=np.float64).reshape(S, 3, 3)
-    Q = rotation_matrices(phi)                                     # (S, N, 3, 3)
-    R = np.empty((S, N + 1, 3, 3))
-    R[:, 0] = R0
-    for j in range(N):
-        R[:, j + 1] = Q[:, j] @ R[:, j]
-    safe_l = np.where(lengths > 0, lengths, 1.0)
-    q = np.einsum("snba,snb->sna", R[:, :-1], phi) / safe_l[..., None]
-    q[lengths <= 0] = 0.0
-    helix = SuperHelix(root_positions, R0, lengths, q, n_elements)
-    return helix, _table(helix, R[:, :-1, :, 0], phi, safe_l)
-
-
-def _table(helix: SuperHelix, T, phi, safe_l) -> CurveTable:
-    """Node positions by C_{j+1} = C_j + l_j (t_j + f2 Phi x t_j + f3 Phi x (Phi x t_j))."""
-    S, N = helix.lengths.shape
-    _, f2, f3 = f123(dot(phi, phi))
-    pt = cross(phi, T)
-    chord = helix.lengths[..., None] * (T + f2[..., None] * pt + f3[..., None] * cross(phi, pt))
-    C = np.empty((S, N + 1, 3))
-    C[:, 0] = helix.root_positions
-    np.cumsum(chord, axis=1, out=C[:, 1:])
-    C[:, 1:] += helix.root_positions[:, None]
-    mask = helix.element_mask
-    starts = helix.element_starts[:, :-1]
-    return CurveTable(
-        elem_offsets=helix.flat_offsets(),
-        start=starts[mask], length=helix.lengths[mask],
-        C=C[:, :-1][mask], T=T[mask], Omega=(phi / safe_l[..., None])[mask],
-        strand_length=helix.strand_lengths,
-    )
-
-
-def curve_table(helix: SuperHelix) -> CurveTable:
-    """The :class:`CurveTable` of any SuperHelix (node frames from superhelix.kinematics)."""
-    kin = kinematics(helix)
-    mask = helix.element_mask
-    R = kin.R[:, :-1]
-    omega_world = np.einsum("snab,snb->sna", R, helix.curvatures)
-    return CurveTable(
-        elem_offsets=helix.flat_offsets(),
-        start=helix.element_starts[:, :-1][mask], length=helix.lengths[mask],
-        C=kin.C[:, :-1][mask], T=R[..., 0][mask], Omega=omega_world[mask],
-        strand_length=helix.strand_lengths,
-    )
