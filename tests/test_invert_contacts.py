@@ -313,19 +313,20 @@ def test_failure_message_of_a_diverged_solve_has_no_tolerance_advice():
 def test_check_stages_equal_their_original_implementations(draped):
     """The equilibrium check, the isolated and the contact-held stiffness ratios against the original
     dense routes, on strands touching the sphere and each other."""
-    from groomtool.invert import _equilibrium_residuals_reference, equilibrium_residuals
-    from groomtool.stability import _stiffness_ratios_reference, stiffness_ratios
+    from groomtool.invert import equilibrium_residuals
+    from groomtool.stability import stiffness_ratios
+    from reference.equilibrium import equilibrium_residuals_reference, stiffness_ratios_reference
 
     _, res = draped
     helix, g = res.helix, res.gravity
     args = (helix, res.rest_curvatures, MAT, g, res.contacts, res.forces)
-    np.testing.assert_allclose(equilibrium_residuals(*args), _equilibrium_residuals_reference(*args),
+    np.testing.assert_allclose(equilibrium_residuals(*args), equilibrium_residuals_reference(*args),
                                rtol=1e-10, atol=1e-14)
-    np.testing.assert_allclose(equilibrium_residuals(*args, chunk=1), _equilibrium_residuals_reference(*args),
+    np.testing.assert_allclose(equilibrium_residuals(*args, chunk=1), equilibrium_residuals_reference(*args),
                                rtol=1e-10, atol=1e-14)
     iso = stiffness_ratios(helix, MAT.stiffness_diag, MAT.linear_density, g)
-    np.testing.assert_allclose(iso, _stiffness_ratios_reference(helix, MAT.stiffness_diag, MAT.linear_density, g,
-                                                                chunk=1), rtol=1e-10)
+    np.testing.assert_allclose(iso, stiffness_ratios_reference(helix, MAT.stiffness_diag, MAT.linear_density, g,
+                                                               chunk=1), rtol=1e-10)
     from groomtool.stability import held_stiffness_ratios
 
     held = held_stiffness_ratios(helix, MAT.stiffness_diag, MAT.linear_density, g, res.contacts, res.forces,

@@ -17,10 +17,11 @@ from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 from groomtool import stability
-from groomtool.invert import _equilibrium_residuals_reference, equilibrium_residuals
+from groomtool.invert import equilibrium_residuals
 from groomtool.material import Material
 from groomtool.rods import superhelix as sh
-from groomtool.stability import _stiffness_ratios_reference, stiffness_ratios
+from groomtool.stability import stiffness_ratios
+from reference.equilibrium import equilibrium_residuals_reference, stiffness_ratios_reference
 
 MAT = Material()
 G = np.array([0.3, -9.81, 0.5])
@@ -118,7 +119,7 @@ def test_stiffness_ratios_equal_the_dense_eigvalsh(seed, scale, gravity):
     g = np.array(gravity)
     helix = random_helix(seed, n_strands=5, max_elements=14, scale=scale)
     new = stiffness_ratios(helix, MAT.stiffness_diag, MAT.linear_density, g)
-    ref = _stiffness_ratios_reference(helix, MAT.stiffness_diag, MAT.linear_density, g, chunk=1)
+    ref = stiffness_ratios_reference(helix, MAT.stiffness_diag, MAT.linear_density, g, chunk=1)
     norms = [np.linalg.norm(dense_A(helix, s, g)) for s in range(helix.n_strands)]
     assert_ratios_close(new, ref, norms)
     # and by the O(N) route, not the dense fallback (never needed on 37,500 such strands nor on harolongo)
@@ -142,7 +143,7 @@ def test_straight_strands_double_eigenvalues_and_negative_ratios(n, up):
 
 def test_uncertified_strands_fall_back_to_the_dense_route(monkeypatch):
     helix = random_helix(11, n_strands=6, max_elements=12)
-    ref = _stiffness_ratios_reference(helix, MAT.stiffness_diag, MAT.linear_density, G, chunk=1)
+    ref = stiffness_ratios_reference(helix, MAT.stiffness_diag, MAT.linear_density, G, chunk=1)
     norms = [np.linalg.norm(dense_A(helix, s)) for s in range(helix.n_strands)]
     assert_ratios_close(stiffness_ratios(helix, MAT.stiffness_diag, MAT.linear_density, G), ref, norms)
     ok = np.empty(helix.n_strands, dtype=bool)
@@ -231,10 +232,10 @@ def test_equilibrium_residuals_equal_the_original(seed, m, chunk):
     contacts = _random_contacts(rng, helix, m)
     forces = rng.normal(size=(m, 3)) * 1e-3
     new = equilibrium_residuals(helix, rest, MAT, G, contacts, forces, chunk=chunk)
-    ref = _equilibrium_residuals_reference(helix, rest, MAT, G, contacts, forces)
+    ref = equilibrium_residuals_reference(helix, rest, MAT, G, contacts, forces)
     assert np.allclose(new, ref, rtol=1e-10, atol=1e-13)
     none = equilibrium_residuals(helix, rest, MAT, G, chunk=chunk)
-    assert np.allclose(none, _equilibrium_residuals_reference(helix, rest, MAT, G), rtol=1e-10, atol=1e-13)
+    assert np.allclose(none, equilibrium_residuals_reference(helix, rest, MAT, G), rtol=1e-10, atol=1e-13)
     if m and np.abs(forces).max() > 0:
         assert not np.allclose(new, none, rtol=1e-6, atol=0)  # the contact forces are in it
 
@@ -252,7 +253,7 @@ def test_real_strands_match_the_dense_route(shared_data):
     helix = fit_groom(groom, tolerance=5e-4).helix
     g = groom.gravity(MAT.gravity)
     new = stiffness_ratios(helix, MAT.stiffness_diag, MAT.linear_density, g)
-    ref = _stiffness_ratios_reference(helix, MAT.stiffness_diag, MAT.linear_density, g, chunk=1)
+    ref = stiffness_ratios_reference(helix, MAT.stiffness_diag, MAT.linear_density, g, chunk=1)
     norms = [np.linalg.norm(dense_A(helix, s, g)) for s in range(helix.n_strands)]
     assert_ratios_close(new, ref, norms)
     assert np.all(np.abs(new - ref) <= 1e-10 * np.abs(ref))  # real strands: relative agreement

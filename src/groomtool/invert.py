@@ -191,22 +191,6 @@ def equilibrium_residuals(helix: sh.SuperHelix, rest_curvatures, material: Mater
     return num / np.maximum(den, np.finfo(float).tiny)
 
 
-def _equilibrium_residuals_reference(helix: sh.SuperHelix, rest_curvatures, material: Material, gravity,
-                                     contacts=None, forces=None) -> np.ndarray:
-    """The original :func:`equilibrium_residuals` (kinematics twice, the second time padded to the
-    longest strand), with the dense point-Jacobian H^T r: tests only."""
-    F = gravity_force(helix, material, gravity)
-    K = sh.stiffness(helix, material.stiffness_diag)
-    res = K * (helix.curvatures - rest_curvatures) - F
-    if contacts is not None and forces is not None and len(forces):
-        from .contact.jacobian import _generalized_contact_force_reference
-
-        res -= _generalized_contact_force_reference(helix, contacts, forces)
-    num = np.linalg.norm(res.reshape(helix.n_strands, -1), axis=1)
-    den = np.linalg.norm(F.reshape(helix.n_strands, -1), axis=1)
-    return num / np.maximum(den, np.finfo(float).tiny)
-
-
 @dataclass
 class InverseProblem:
     """The inverse SOCQP in solver units: W~ = H (K^-2 / w_scale) H^T + 2 gamma I, b~ = b / (w_scale f_scale),

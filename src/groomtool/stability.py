@@ -435,30 +435,6 @@ def _csr_block_kernel(indptr, indices, data, rows, c0, c1, out):
                 out[i, c - c0] += data[p]
 
 
-def _stiffness_ratios_reference(helix: sh.SuperHelix, stiffness_diag, linear_density: float, gravity,
-                                chunk: int = 256, progress=None) -> np.ndarray:
-    """The original dense route: batched eigvalsh of the padded matrices (tests and benchmarks only; with
-    chunk > 1 a strand shorter than the longest of its chunk gets max(rho, 0), the padding's zeros)."""
-    order = np.argsort(helix.n_elements, kind="stable")
-    out = np.empty(helix.n_strands)
-    with threadpool_limits(1, user_api="blas"):
-        for start in range(0, helix.n_strands, chunk):
-            ids = order[start:start + chunk]
-            out[ids] = _ratios_reference(helix.subset(ids), stiffness_diag, linear_density, gravity)
-            if progress is not None:
-                progress.update(len(ids))
-    return out
-
-
-def _ratios_reference(helix, stiffness_diag, linear_density, gravity):
-    dF = sh._gravity_force_jacobian_reference(helix, linear_density, gravity)
-    K = sh.stiffness(helix, stiffness_diag).reshape(helix.n_strands, -1)
-    K = np.where(K > 0, K, 1.0)  # padding dofs: dF is zero there, any K works
-    scale = 1.0 / np.sqrt(K)
-    A = scale[:, :, None] * dF * scale[:, None, :]
-    return np.linalg.eigvalsh(A)[:, -1]
-
-
 # --------------------------------------------------------------------------- stability with the contacts that hold it
 STICK_SLACK = 1e-6  # a force with ||r_T|| < (1 - STICK_SLACK) mu r_N sticks; on the cone boundary it may slide
 
