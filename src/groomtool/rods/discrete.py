@@ -37,11 +37,6 @@ def matvec(Q: np.ndarray, v: np.ndarray) -> np.ndarray:
     return np.stack([dot(Q[:, 0], v), dot(Q[:, 1], v), dot(Q[:, 2], v)], axis=1)
 
 
-def rmatvec(Q: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """Q^T v: the lab vector of material-frame components v."""
-    return Q[:, 0] * v[:, :1] + Q[:, 1] * v[:, 1:2] + Q[:, 2] * v[:, 2:3]
-
-
 def norm(a: np.ndarray) -> np.ndarray:
     return np.sqrt(dot(a, a))
 
