@@ -17,7 +17,7 @@ import dynamics_reference as ref
 from groomtool.material import Material
 from groomtool.rods import superhelix as sh
 from groomtool.simulate import SimulationParams, Simulator, simulate
-from groomtool.simulate_linalg import _cho_inverse_kernel, cho_inverse, factor_step_matrix
+from groomtool.simulate_linalg import StepCorrections, _cho_inverse_kernel, cho_inverse, factor_step_matrix
 from groomtool.simulate_progress import StepProgress
 
 GRAVITY = np.array([0.0, -9.81, 0.0])
@@ -78,19 +78,19 @@ def test_kept_step_corrections_are_the_fresh_ones_at_rest_and_bound_every_mode()
     Y = rng.normal(size=(m, m))
     B = (-2.0 * m * (Y + Y.T) / 2.0)[None]
     n_elements = np.array([m // 3])
-    corrections = [None]
+    corrections = StepCorrections(1)
     fresh, modified = factor_step_matrix(A, B, n_elements)
     assert modified == 1
     first, _ = factor_step_matrix(A, B, n_elements, corrections)
-    assert corrections[0] is not None and np.allclose(first, fresh, rtol=0, atol=1e-14 * np.abs(fresh).max())
-    kept = corrections[0].copy()
+    assert corrections.get(0) is not None and np.allclose(first, fresh, rtol=0, atol=1e-14 * np.abs(fresh).max())
+    kept = corrections.get(0).copy()
     again, modified = factor_step_matrix(A, B, n_elements, corrections)
-    assert modified == 1 and np.array_equal(corrections[0], kept)  # the same C: no new decomposition
+    assert modified == 1 and np.array_equal(corrections.get(0), kept)  # the same C: no new decomposition
     assert np.allclose(again, first, rtol=0, atol=1e-13 * np.abs(first).max())
     # a small drift: the kept C is reused and still bounds every mode
     B2 = B * 1.01
     drifted, _ = factor_step_matrix(A, B2, n_elements, corrections)
-    assert np.array_equal(corrections[0], kept)
+    assert np.array_equal(corrections.get(0), kept)
     Mhat = drifted[0] @ drifted[0].T
     assert np.allclose(Mhat, A[0] + B2[0] + kept, rtol=0, atol=1e-12 * np.abs(Mhat).max())
     L = np.linalg.cholesky(A[0])
@@ -98,9 +98,9 @@ def test_kept_step_corrections_are_the_fresh_ones_at_rest_and_bound_every_mode()
     assert np.linalg.eigvalsh(Li @ Mhat @ Li.T).min() > 0.5
     # a large change: decomposed anew; a stable strand: correction dropped
     factor_step_matrix(A, 3.0 * B, n_elements, corrections)
-    assert not np.array_equal(corrections[0], kept)
+    assert not np.array_equal(corrections.get(0), kept)
     _, modified = factor_step_matrix(A, 0.0 * B, n_elements, corrections)
-    assert modified == 0 and corrections[0] is None
+    assert modified == 0 and corrections.get(0) is None
 
 
 def test_cho_inverse_matches_the_triangular_solves():
@@ -303,7 +303,6 @@ def test_check_command_with_a_subset(inverted_dir, capsys):
 # --------------------------------------------------------------------------- mass matrix assembly
 def batched_mass_reference(helix, inertia, order=4):
     """dynamics.mass_matrix as first written: the blocks assembled with batched dense products and masks."""
-    from groomtool.rods import dynamics as dyn
 
     kin = sh.kinematics(helix)
     pts = ref.element_points(helix, kin, order)

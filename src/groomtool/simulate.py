@@ -51,7 +51,7 @@ from .simulate_contacts import (ContactTracker, contact_gaps, match_contacts,  #
                                 normal_velocity_targets)
 from .simulate_linalg import cho_inverse as _cho_inverse
 from .simulate_linalg import cho_solve as _cho_solve
-from .simulate_linalg import factor_spd, factor_step_matrix  # noqa: F401 (re-exported)
+from .simulate_linalg import StepCorrections, factor_step_matrix
 from .simulate_motion import HeadMotion
 from .simulate_motion import rigid_motion as _rigid_motion  # noqa: F401 (re-exported)
 
@@ -129,7 +129,8 @@ class State:
 
 @dataclass
 class StepSystem:
-    """One step up to the contact problem (exposed for tests): the Cholesky factors of Mhat (S, 3N, 3N),
+    """One step up to the contact problem (exposed for tests): the Cholesky factors of Mhat (S, 3N, 3N;
+    a buffer the next step overwrites),
     the free rates v_free (S, N, 3), contacts, H, the solver-scaled ContactProblem (r = r_scale r~,
     u = u_scale u~), and the geometry it was built on."""
 
@@ -209,7 +210,8 @@ class Simulator:
         self.timings: dict[str, float] = {}
         self.modified_strands = 0  # strand-steps whose step matrix was modified (factor_step_matrix)
         self.clamped_strands = 0  # strand-steps whose rates were scaled down (_limit_rotation)
-        self._corrections = [None] * helix.n_strands if self.params.keep_step_corrections else None
+        self._corrections = StepCorrections(helix.n_strands) if self.params.keep_step_corrections else None
+        self._chol = None  # the step's Cholesky factors, reused from step to step (StepSystem.chol)
         self._contacts_on = self.params.contacts == "all" or (self.params.contacts == "head" and head is not None)
         self._radius = self.params.contact_radius
         self.tracker: ContactTracker | None = None
@@ -264,25 +266,21 @@ class Simulator:
 
         S, N = self.lengths.shape
         n = 3 * N
-        Kf = self.K.reshape(S, n)
         alpha = p.mass_damping + p.air_drag / self.inertia.linear
-        Mhat = (1.0 + h * alpha) * M
-        diag = np.arange(n)
-        Mhat[:, diag, diag] += (h * h + h * p.stiffness_damping) * Kf
         pad = ~np.repeat(self.mask, 3, axis=1)
-        Mhat[:, diag, diag] += pad
         force = F - self.K * (st.curvatures - self.rest) - A
         if self.external is not None:
             force = force + self.external
         rhs = np.einsum("sij,sj->si", M, st.rates.reshape(S, n)) + h * force.reshape(S, n)
         rhs[pad] = 0.0
         t0 = self._time("assembly", t0)
-        if p.implicit_gravity:
-            dF = sh.gravity_force_jacobian(helix, self.inertia.linear, self.gravity, kin)
-            chol, modified = factor_step_matrix(Mhat, -h * h * dF, self.n_elements, self._corrections)
-            self.modified_strands += modified
-        else:
-            chol = factor_spd(Mhat, self.n_elements)
+        # Mhat = (1 + h alpha) M + (h^2 + h beta) K - h^2 dF/dq, factorised strand by strand
+        dF = sh.gravity_force_jacobian(helix, self.inertia.linear, self.gravity, kin) if p.implicit_gravity else M
+        chol, modified = factor_step_matrix(M, dF, self.n_elements, self._corrections, a_scale=1.0 + h * alpha,
+                                            stiffness=self.K, k_scale=h * h + h * p.stiffness_damping,
+                                            b_scale=-h * h if p.implicit_gravity else 0.0, out=self._chol)
+        self._chol = chol
+        self.modified_strands += modified
         v_free = _cho_solve(chol, rhs).reshape(S, N, 3)
         t0 = self._time("factor", t0)
         system = StepSystem(helix=helix, kin=kin, chol=chol, v_free=v_free, mass=M)

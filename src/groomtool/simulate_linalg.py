@@ -41,69 +41,133 @@ def modified_step_matrix(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return 0.5 * (m + m.T)
 
 
-def _stable_enough(a: np.ndarray, b: np.ndarray) -> bool:
-    """A/2 + B positive definite: every mode's step factor 1 + lambda (B v = lambda A v) exceeds 1/2."""
-    return _cholesky(0.5 * a + b) is not None
+class StepCorrections:
+    """The unstable-mode correction C_s = modified_step_matrix(A, B) - A - B of each strand that needed
+    one, kept between steps (factor_step_matrix); stored compactly (only modified strands have a slot)."""
+
+    def __init__(self, n_strands: int):
+        self.slot = np.full(n_strands, -1, dtype=np.int64)
+        self.data = np.zeros((0, 1, 1))
+
+    def get(self, s: int) -> np.ndarray | None:
+        k = self.slot[s]
+        return None if k < 0 else self.data[k]
+
+    def set(self, s: int, correction: np.ndarray | None) -> None:
+        if correction is None:
+            self.slot[s] = -1
+            return
+        n = correction.shape[0]
+        if self.slot[s] < 0:
+            used = set(self.slot[self.slot >= 0].tolist())
+            free = [k for k in range(len(self.data)) if k not in used]
+            if free:
+                self.slot[s] = free[0]
+            else:
+                self.slot[s] = len(self.data)
+                grown = np.zeros((max(2 * len(self.data), 4), max(self.data.shape[1], n), max(self.data.shape[1], n)))
+                grown[:len(self.data), :self.data.shape[1], :self.data.shape[1]] = self.data
+                self.data = grown
+        if n > self.data.shape[1]:
+            grown = np.zeros((len(self.data), n, n))
+            grown[:, :self.data.shape[1], :self.data.shape[1]] = self.data
+            self.data = grown
+        block = self.data[self.slot[s]]
+        block[:] = 0.0
+        block[:n, :n] = correction
+
+
+@njit(cache=True)
+def _try_cholesky(a):
+    """(L, True) with a = L L^T, or (a, False) where a is not positive definite (LAPACK dpotrf)."""
+    try:
+        return np.linalg.cholesky(a), True
+    except Exception:  # numba's LinAlgError: not positive definite
+        return a, False
+
+
+@njit(cache=True)
+def _factor_kernel(A, a_scale, Kd, k_scale, B, b_scale, n_elements, slot, corr, chol, status):
+    """Per strand, on its 3 N_s real dofs: a = a_scale A + diag(k_scale Kd), b = b_scale B; if a/2 + b
+    is positive definite, chol = cholesky(a + b) (status 0); else with a kept correction C for which
+    a/2 + b + C is, chol = cholesky(a + b + C) (status 1); else status 2 (a new eigendecomposition is
+    needed: done by the caller).  Padding rows of chol are left as they are."""
+    for s in range(A.shape[0]):
+        n = 3 * n_elements[s]
+        a = np.empty((n, n))
+        b = np.empty((n, n))
+        for i in range(n):
+            for j in range(n):
+                a[i, j] = a_scale * A[s, i, j]
+                b[i, j] = b_scale * B[s, i, j]
+            a[i, i] += k_scale * Kd[s, i]
+        L, ok = _try_cholesky(0.5 * a + b)
+        st = 0
+        if ok:
+            L, ok = _try_cholesky(a + b)
+        if not ok and slot[s] >= 0:
+            C = corr[slot[s], :n, :n]
+            L, ok = _try_cholesky(0.5 * a + b + C)
+            if ok:
+                L, ok = _try_cholesky(a + b + C)
+            st = 1
+        if not ok:
+            status[s] = 2
+            continue
+        status[s] = st
+        for i in range(n):
+            for j in range(n):
+                chol[s, i, j] = L[i, j]
 
 
 def factor_step_matrix(A: np.ndarray, B: np.ndarray, n_elements: np.ndarray,
-                       corrections: list | None = None) -> tuple[np.ndarray, int]:
-    """Cholesky factors of Mhat = A + B per strand, A = M + h^2 K + ... (SPD), B = -h^2 dF/dq.
+                       corrections: StepCorrections | None = None, *, a_scale: float = 1.0, stiffness=None,
+                       k_scale: float = 0.0, b_scale: float = 1.0, out: np.ndarray | None = None
+                       ) -> tuple[np.ndarray, int]:
+    """Cholesky factors of Mhat = a + b per strand, a = a_scale A + k_scale diag(stiffness) (SPD; e.g.
+    A = M, a_scale = 1 + h alpha, k_scale = h^2 + h beta), b = b_scale B (B = dF/dq, b_scale = -h^2).
 
-    Where A/2 + B is positive definite (every mode's step factor 1 + lambda >= 1/2, lambda the
-    eigenvalues of B relative to A) Mhat = A + B: gravity is linearly implicit.  Elsewhere a mode of
+    Where a/2 + b is positive definite (every mode's step factor 1 + lambda >= 1/2, lambda the
+    eigenvalues of b relative to a) Mhat = a + b: gravity is linearly implicit.  Elsewhere a mode of
     the potential is unstable enough that 1 + lambda would approach or cross 0 (amplification
-    1 / (1 + lambda) unbounded): Mhat = A + B + C with C = modified_step_matrix(A, B) - A - B.
+    1 / (1 + lambda) unbounded): Mhat = a + b + C with C = modified_step_matrix(a, b) - a - b.
 
-    ``corrections`` (a list of S entries, None or C, updated in place) keeps each strand's C between
-    steps: a kept C is used again as long as A/2 + B + C stays positive definite (the same bound on
-    every mode's step factor as for an unmodified strand), so the eigendecomposition is only redone
-    when the strand moved out of it; at rest the kept C is the fresh one.  Without it every
-    modified strand is decomposed anew.  A, B (S, n, n) padded (A's padding is the identity, B's
-    zero); returns the factors (S, n, n) and the number of strands whose step matrix was modified.
+    ``corrections`` (StepCorrections, updated in place) keeps each strand's C between steps: a kept C
+    is used again as long as a/2 + b + C stays positive definite (the same bound on every mode's step
+    factor as for an unmodified strand), so the eigendecomposition is only redone when the strand
+    moved out of it; at rest the kept C is the fresh one.  Without it every modified strand is
+    decomposed anew.  A, B (S, n, n) padded; returns the factors (S, n, n: padding rows and columns
+    the identity; ``out`` is reused when given) and the number of strands whose step matrix was
+    modified.  Compiled (LAPACK dpotrf per strand), one eigendecomposition in Python per new C.
     """
     S, n_pad, _ = A.shape
-    chol = np.zeros_like(A)
-    modified = 0
-    for s in range(S):
+    n_elements = np.asarray(n_elements, dtype=np.int64)
+    if out is None or out.shape != A.shape:
+        out = np.zeros_like(A)
+        for s in range(S):
+            pad = np.arange(3 * int(n_elements[s]), n_pad)
+            out[s, pad, pad] = 1.0
+    Kd = np.zeros((S, n_pad)) if stiffness is None else np.ascontiguousarray(stiffness, dtype=np.float64).reshape(S, -1)
+    keep = corrections if corrections is not None else StepCorrections(S)
+    status = np.zeros(S, dtype=np.int64)
+    _factor_kernel(np.ascontiguousarray(A), float(a_scale), Kd, float(k_scale), np.ascontiguousarray(B),
+                   float(b_scale), n_elements, keep.slot if corrections is not None else np.full(S, -1, np.int64),
+                   keep.data, out, status)
+    for s in np.flatnonzero(status == 2):
         n = 3 * int(n_elements[s])
-        a, b = A[s, :n, :n], B[s, :n, :n]
-        L = None
-        if _stable_enough(a, b):
-            L = _cholesky(a + b)  # = A/2 + (A/2 + B): positive definite too
-        if L is None:
-            modified += 1
-            kept = corrections[s] if corrections is not None else None
-            if kept is not None and kept.shape == a.shape and _stable_enough(a, b + kept):
-                L = _cholesky(a + b + kept)
-            if L is None:
-                m = modified_step_matrix(a, b)
-                L = _cholesky(m)
-                if L is None:
-                    raise np.linalg.LinAlgError(f"strand {s}: the step matrix is not positive definite")
-                if corrections is not None:
-                    corrections[s] = m - (a + b)
-        elif corrections is not None:
-            corrections[s] = None
-        chol[s, :n, :n] = L
-        pad = np.arange(n, n_pad)
-        chol[s, pad, pad] = np.sqrt(A[s, pad, pad] + B[s, pad, pad])
-    return chol, modified
-
-
-def factor_spd(A: np.ndarray, n_elements: np.ndarray) -> np.ndarray:
-    """Cholesky factors of SPD (S, n, n) matrices on each strand's 3 N_s dofs (padding: sqrt of the diagonal)."""
-    S, n_pad, _ = A.shape
-    chol = np.zeros_like(A)
-    for s in range(S):
-        n = 3 * int(n_elements[s])
-        L = _cholesky(A[s, :n, :n])
+        a = a_scale * A[s, :n, :n] + np.diag(k_scale * Kd[s, :n])
+        b = b_scale * B[s, :n, :n]
+        m = modified_step_matrix(a, b)
+        L = _cholesky(m)
         if L is None:
             raise np.linalg.LinAlgError(f"strand {s}: the step matrix is not positive definite")
-        chol[s, :n, :n] = L
-        pad = np.arange(n, n_pad)
-        chol[s, pad, pad] = np.sqrt(A[s, pad, pad])
-    return chol
+        out[s, :n, :n] = L
+        if corrections is not None:
+            corrections.set(int(s), m - (a + b))
+    if corrections is not None:
+        for s in np.flatnonzero(status == 0):
+            corrections.set(int(s), None)
+    return out, int(np.count_nonzero(status > 0))
 
 
 @njit(cache=True)
