@@ -8,7 +8,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from groomtool.rods.dynamics import Inertia, NodeMotion, _second_directional, cross, node_motion
+from groomtool.rods.dynamics import Inertia
 from groomtool.rods.series import c_table
 from groomtool.rods.superhelix import E0, Kinematics, SuperHelix, _psi_apply_jacobian, kinematics, skew
 
@@ -52,6 +52,91 @@ def element_points(helix: SuperHelix, kin: Kinematics, order: int = 4) -> Elemen
     x = (kin.C[:, :-1, None] - kin.C[:, :1, None]) + np.einsum("snqab,snqb->snqa", Rj, p)
     return ElementPoints(t=t, w=w, x=x, R=Rj @ psi0, J_own=Rj @ D, Jw_own=Rj @ psi1, p=p, D=D, psi1=psi1,
                          c=c, dc=dc, ddc=ddc)
+
+
+def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a x b over the last axis (broadcasting), without np.cross's per-call overhead."""
+    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
+
+
+@dataclass
+class NodeMotion:
+    """World velocity V, angular velocity Omega (S, N+1, 3) at the nodes, and their accelerations at
+    qddot = 0: a, alpha (S, N+1, 3)."""
+
+    V: np.ndarray
+    Omega: np.ndarray
+    a: np.ndarray
+    alpha: np.ndarray
+
+
+def _second_directional(c, dc, ddc, omega, z, u):
+    """p''[u, u] for p = t e0 + c2 omega x e0 + c3 (omega (omega.e0) - z e0), and dPsi_1[u] u.
+
+    For a coefficient c(z) times a vector u_(eps), (c u_)'' = (c'' z'^2 + c' z'') u_ + 2 c' z' u_' + c u_'',
+    with z' = 2 omega.u, z'' = 2 u.u.
+    """
+    e0 = np.broadcast_to(E0, omega.shape)
+    dz = 2.0 * np.einsum("...i,...i->...", omega, u)
+    ddz = 2.0 * np.einsum("...i,...i->...", u, u)
+    we = omega[..., 0]
+    ue = u[..., 0]
+    v1 = cross(omega, e0)
+    v1p = cross(u, e0)
+    v2 = omega * we[..., None] - z[..., None] * e0
+    v2p = u * we[..., None] + omega * ue[..., None] - dz[..., None] * e0
+    v2pp = 2.0 * u * ue[..., None] - ddz[..., None] * e0
+
+    def s(a):
+        return a[..., None]
+
+    p2 = (s(ddc[2] * dz * dz + dc[2] * ddz) * v1 + s(2.0 * dc[2] * dz) * v1p
+          + s(ddc[3] * dz * dz + dc[3] * ddz) * v2 + s(2.0 * dc[3] * dz) * v2p + s(c[3]) * v2pp)
+    wu = cross(omega, u)
+    dpsi = s(dz) * (s(dc[2]) * wu + s(dc[3]) * cross(omega, wu)) + s(c[3]) * cross(u, wu)
+    return p2, dpsi
+
+
+def node_motion(helix: SuperHelix, rates: np.ndarray, kin: Kinematics | None = None,
+                root_velocity=None, root_angular_velocity=None,
+                root_acceleration=None, root_angular_acceleration=None) -> NodeMotion:
+    """Node velocities and accelerations at qddot = 0 by the forward recursion (module docstring).
+
+    ``rates`` (S, N, 3) = qdot; the root's rigid motion (S, 3) or (3,) each, default at rest.
+    """
+    kin = kin if kin is not None else kinematics(helix)
+    S, N = helix.lengths.shape
+    u = np.asarray(rates, dtype=np.float64).reshape(S, N, 3)
+    omega = helix.curvatures
+    c, dc, ddc = c_table(helix.lengths, kin.z)
+    p2, dpsi = _second_directional(c, dc, ddc, omega, kin.z, u)
+    Rj = kin.R[:, :-1]
+    y = np.einsum("snab,snb->sna", Rj, kin.p)
+    lin = np.einsum("snab,snb->sna", Rj @ kin.D, u)
+    ang = np.einsum("snab,snb->sna", kin.Theta, u)
+    p2w = np.einsum("snab,snb->sna", Rj, p2)
+    dpsiw = np.einsum("snab,snb->sna", Rj, dpsi)
+
+    def init(value):
+        return np.broadcast_to(np.zeros(3) if value is None else np.asarray(value, dtype=np.float64), (S, 3))
+
+    V = np.empty((S, N + 1, 3))
+    Om = np.empty((S, N + 1, 3))
+    a = np.empty((S, N + 1, 3))
+    al = np.empty((S, N + 1, 3))
+    V[:, 0], Om[:, 0] = init(root_velocity), init(root_angular_velocity)
+    a[:, 0], al[:, 0] = init(root_acceleration), init(root_angular_acceleration)
+    for j in range(N):
+        o = Om[:, j]
+        V[:, j + 1] = V[:, j] + cross(o, y[:, j]) + lin[:, j]
+        Om[:, j + 1] = o + ang[:, j]
+        a[:, j + 1] = (a[:, j] + cross(al[:, j], y[:, j]) + cross(o, cross(o, y[:, j]))
+                       + 2.0 * cross(o, lin[:, j]) + p2w[:, j])
+        al[:, j + 1] = al[:, j] + cross(o, ang[:, j]) + dpsiw[:, j]
+    return NodeMotion(V=V, Omega=Om, a=a, alpha=al)
+
 
 
 def _suffix_beyond(per_element: np.ndarray) -> np.ndarray:

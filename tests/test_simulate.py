@@ -102,7 +102,7 @@ def test_point_accelerations_are_second_derivatives(seed):
     v = rng.normal(size=helix.curvatures.shape) * helix.element_mask[..., None]
     kin = sh.kinematics(helix)
     pts = ref.element_points(helix, kin, order=3)
-    mo = ref.point_motion(helix, v, kin, pts, dyn.node_motion(helix, v, kin))
+    mo = ref.point_motion(helix, v, kin, pts, ref.node_motion(helix, v, kin))
     h = 1e-4
 
     def points(e):
@@ -122,7 +122,7 @@ def test_point_accelerations_are_second_derivatives(seed):
         hh = helix.with_curvatures(helix.curvatures + e * v)
         k = sh.kinematics(hh)
         p = ref.element_points(hh, k, order=3)
-        return ref.point_motion(hh, v, k, p, dyn.node_motion(hh, v, k)).Omega
+        return ref.point_motion(hh, v, k, p, ref.node_motion(hh, v, k)).Omega
 
     alpha_fd = (omega(h) - omega(-h)) / (2 * h)
     assert np.allclose(mo.alpha * mask, alpha_fd * mask, rtol=0, atol=1e-6 * np.abs(alpha_fd).max())

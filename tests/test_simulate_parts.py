@@ -384,6 +384,8 @@ def test_inertia_kernel_matches_the_numpy_quadrature(seed, n, scale, moving):
     assert np.abs(A - A_ref).max() <= 1e-10 * max(np.abs(A_ref).max(), 1e-300)
     assert np.array_equal(dyn.mass_matrix(helix, inertia, order=5), M)
     assert np.array_equal(dyn.velocity_terms(helix, rates, inertia, order=5, root_motion=motion), A)
+    speed = np.linalg.norm(ref.node_motion(helix, rates).V, axis=-1).max()
+    assert dyn.max_node_speed(helix, rates) == pytest.approx(speed, rel=1e-12, abs=1e-300)
 
 
 def test_subset_of_touching_strands_starts_in_equilibrium(tmp_path):

@@ -43,6 +43,7 @@ from dataclasses import dataclass, field, replace
 from typing import Callable
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from .material import Material
 from .rods import dynamics as dyn
@@ -287,8 +288,7 @@ class Simulator:
         if not self._contacts_on:
             return system
 
-        nodes = dyn.node_motion(helix, st.rates, kin)
-        margins = self.tracker.margins(float(np.max(np.linalg.norm(nodes.V, axis=-1), initial=0.0)))
+        margins = self.tracker.margins(dyn.max_node_speed(helix, st.rates, kin))
         contacts = self.tracker.contacts(helix, kin, st.time, margins)
         t0 = self._time("detect", t0)
         system.stats["contacts"] = len(contacts.strand_a)
@@ -474,6 +474,7 @@ def simulate(helix: sh.SuperHelix, rest_curvatures, material: Material, gravity,
     failed_steps, failed_residuals = [], []
     own_bar = not isinstance(progress, StepProgress)
     reporter = StepProgress([("simulate", steps)], enabled=bool(progress)) if own_bar else progress
+    blas_one_thread = threadpool_limits(1, user_api="blas")  # per-strand systems of 30-300 dofs: threads only wait
     try:
         for k in range(steps):
             t_step = time.perf_counter()
@@ -495,6 +496,7 @@ def simulate(helix: sh.SuperHelix, rest_curvatures, material: Material, gravity,
             step_s.append(time.perf_counter() - t_step)
             reporter.step(step_s[-1])
     finally:
+        blas_one_thread.restore_original_limits()
         if own_bar:
             reporter.close()
     total = time.perf_counter() - t_start

@@ -34,7 +34,7 @@ def rigid_motion(head_motion: Callable, t: float, eps: float = 1e-4):
 @dataclass
 class RootPose:
     """Roots (S, 3) and root frames (S, 3, 3) at one time; for a moving head also its transform
-    (R, T), velocity (V, Omega) and the root motion of dynamics.node_motion (``root_motion``)."""
+    (R, T), velocity (V, Omega) and the root motion of dynamics.inertia_terms (``root_motion``)."""
 
     roots: np.ndarray
     frames: np.ndarray

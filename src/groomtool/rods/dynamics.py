@@ -29,6 +29,9 @@ y_j = R_j p_j the chord of element j and u_j its rate vector:
     alpha_{j+1} = alpha_j + Omega_j x (R_j Psi_1 u_j) + R_j (dPsi_1[u_j] u_j)
     a_{j+1}     = a_j + alpha_j x y_j + Omega_j x (Omega_j x y_j) + 2 Omega_j x (R_j D_j u_j) + R_j p''[u_j, u_j]
 (the same formulas with t instead of l_j give every point inside an element).
+
+M and A are computed together in one compiled pass per strand (:func:`inertia_terms`); the vectorised
+numpy version over every Gauss point is the tests' reference (tests/dynamics_reference.py).
 """
 
 from __future__ import annotations
@@ -38,8 +41,8 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-from .series import _f_point, c_table
-from .superhelix import E0, Kinematics, SuperHelix, _e0_jacobian, kinematics
+from .series import _f_point
+from .superhelix import Kinematics, SuperHelix, _e0_jacobian, kinematics
 
 
 @dataclass(frozen=True)
@@ -58,89 +61,46 @@ class Inertia:
         return cls(float(material.linear_density), tuple(float(x) for x in rot))
 
 
-def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """a x b over the last axis (broadcasting), without np.cross's per-call overhead."""
-    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
-    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
-    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
-
-
-# --------------------------------------------------------------------------- motion and velocity terms
-@dataclass
-class NodeMotion:
-    """World velocity V, angular velocity Omega (S, N+1, 3) at the nodes, and their accelerations at
-    qddot = 0: a, alpha (S, N+1, 3)."""
-
-    V: np.ndarray
-    Omega: np.ndarray
-    a: np.ndarray
-    alpha: np.ndarray
-
-
-def _second_directional(c, dc, ddc, omega, z, u):
-    """p''[u, u] for p = t e0 + c2 omega x e0 + c3 (omega (omega.e0) - z e0), and dPsi_1[u] u.
-
-    For a coefficient c(z) times a vector u_(eps), (c u_)'' = (c'' z'^2 + c' z'') u_ + 2 c' z' u_' + c u_'',
-    with z' = 2 omega.u, z'' = 2 u.u.
-    """
-    e0 = np.broadcast_to(E0, omega.shape)
-    dz = 2.0 * np.einsum("...i,...i->...", omega, u)
-    ddz = 2.0 * np.einsum("...i,...i->...", u, u)
-    we = omega[..., 0]
-    ue = u[..., 0]
-    v1 = cross(omega, e0)
-    v1p = cross(u, e0)
-    v2 = omega * we[..., None] - z[..., None] * e0
-    v2p = u * we[..., None] + omega * ue[..., None] - dz[..., None] * e0
-    v2pp = 2.0 * u * ue[..., None] - ddz[..., None] * e0
-
-    def s(a):
-        return a[..., None]
-
-    p2 = (s(ddc[2] * dz * dz + dc[2] * ddz) * v1 + s(2.0 * dc[2] * dz) * v1p
-          + s(ddc[3] * dz * dz + dc[3] * ddz) * v2 + s(2.0 * dc[3] * dz) * v2p + s(c[3]) * v2pp)
-    wu = cross(omega, u)
-    dpsi = s(dz) * (s(dc[2]) * wu + s(dc[3]) * cross(omega, wu)) + s(c[3]) * cross(u, wu)
-    return p2, dpsi
-
-
-def node_motion(helix: SuperHelix, rates: np.ndarray, kin: Kinematics | None = None,
-                root_velocity=None, root_angular_velocity=None,
-                root_acceleration=None, root_angular_acceleration=None) -> NodeMotion:
-    """Node velocities and accelerations at qddot = 0 by the forward recursion (module docstring).
-
-    ``rates`` (S, N, 3) = qdot; the root's rigid motion (S, 3) or (3,) each, default at rest.
-    """
+# --------------------------------------------------------------------------- node speeds
+def max_node_speed(helix: SuperHelix, rates: np.ndarray, kin: Kinematics | None = None) -> float:
+    """max over nodes of |V_j| (root at rest), by the recursion V_{j+1} = V_j + Omega_j x y_j + R_j D_j u_j,
+    Omega_{j+1} = Omega_j + Theta_j u_j (module docstring)."""
     kin = kin if kin is not None else kinematics(helix)
     S, N = helix.lengths.shape
-    u = np.asarray(rates, dtype=np.float64).reshape(S, N, 3)
-    omega = helix.curvatures
-    c, dc, ddc = c_table(helix.lengths, kin.z)
-    p2, dpsi = _second_directional(c, dc, ddc, omega, kin.z, u)
-    Rj = kin.R[:, :-1]
-    y = np.einsum("snab,snb->sna", Rj, kin.p)
-    lin = np.einsum("snab,snb->sna", Rj @ kin.D, u)
-    ang = np.einsum("snab,snb->sna", kin.Theta, u)
-    p2w = np.einsum("snab,snb->sna", Rj, p2)
-    dpsiw = np.einsum("snab,snb->sna", Rj, dpsi)
+    u = np.ascontiguousarray(np.asarray(rates, dtype=np.float64).reshape(S, N, 3))
+    return float(_max_node_speed_kernel(kin.R, kin.p, kin.D, kin.Theta, u,
+                                        np.asarray(helix.n_elements, dtype=np.int64)))
 
-    def init(value):
-        return np.broadcast_to(np.zeros(3) if value is None else np.asarray(value, dtype=np.float64), (S, 3))
 
-    V = np.empty((S, N + 1, 3))
-    Om = np.empty((S, N + 1, 3))
-    a = np.empty((S, N + 1, 3))
-    al = np.empty((S, N + 1, 3))
-    V[:, 0], Om[:, 0] = init(root_velocity), init(root_angular_velocity)
-    a[:, 0], al[:, 0] = init(root_acceleration), init(root_angular_acceleration)
-    for j in range(N):
-        o = Om[:, j]
-        V[:, j + 1] = V[:, j] + cross(o, y[:, j]) + lin[:, j]
-        Om[:, j + 1] = o + ang[:, j]
-        a[:, j + 1] = (a[:, j] + cross(al[:, j], y[:, j]) + cross(o, cross(o, y[:, j]))
-                       + 2.0 * cross(o, lin[:, j]) + p2w[:, j])
-        al[:, j + 1] = al[:, j] + cross(o, ang[:, j]) + dpsiw[:, j]
-    return NodeMotion(V=V, Omega=Om, a=a, alpha=al)
+@njit(cache=True)
+def _max_node_speed_kernel(R, p, D, Theta, u, n_elements):
+    best = 0.0
+    V = np.empty(3)
+    om = np.empty(3)
+    y = np.empty(3)
+    for s in range(R.shape[0]):
+        V[:] = 0.0
+        om[:] = 0.0
+        for j in range(n_elements[s]):
+            Rj = R[s, j]
+            for a in range(3):
+                y[a] = Rj[a, 0] * p[s, j, 0] + Rj[a, 1] * p[s, j, 1] + Rj[a, 2] * p[s, j, 2]
+            lin = np.zeros(3)
+            for a in range(3):
+                for b in range(3):
+                    acc = 0.0
+                    for c in range(3):
+                        acc += Rj[a, c] * D[s, j, c, b]
+                    lin[a] += acc * u[s, j, b]
+            V[0] += om[1] * y[2] - om[2] * y[1] + lin[0]
+            V[1] += om[2] * y[0] - om[0] * y[2] + lin[1]
+            V[2] += om[0] * y[1] - om[1] * y[0] + lin[2]
+            for a in range(3):
+                om[a] += Theta[s, j, a, 0] * u[s, j, 0] + Theta[s, j, a, 1] * u[s, j, 1] + Theta[s, j, a, 2] * u[s, j, 2]
+            speed = np.sqrt(V[0] * V[0] + V[1] * V[1] + V[2] * V[2])
+            if speed > best:
+                best = speed
+    return best
 
 
 def _root_motion_arrays(S: int, root_motion: dict | None):
@@ -192,11 +152,11 @@ def velocity_terms(helix: SuperHelix, rates: np.ndarray, inertia: Inertia, kin: 
     """A(q, qdot) = int rhoS J^T a + Jw^T (II alpha + w x II w) ds, (S, N, 3).
 
     Exact for a static root (Coriolis and centrifugal terms); with ``root_motion`` (keys of
-    :func:`node_motion`: root_velocity, root_angular_velocity, root_acceleration,
+    the root motion of a moving head: root_velocity, root_angular_velocity, root_acceleration,
     root_angular_acceleration) it also holds the inertial forces of the moving root frame.
     By structure A_k = B_k^T F_k + Theta_k^T (X_k + T_k) + own_k with F, X, T the sums beyond node k+1
     of w f, w x x f and w tau (f = rhoS a, tau = II alpha + w x II w), the point accelerations a, alpha
-    carried from each element's start node by the recursion of :func:`node_motion`.  O(N) per strand.
+    carried from each element's start node by the node recursion (module docstring).  O(N) per strand.
     """
     return inertia_terms(helix, inertia, kin, rates=rates, order=order, root_motion=root_motion, mass=False)[1]
 
