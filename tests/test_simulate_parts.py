@@ -68,6 +68,32 @@ def test_factor_step_matrix_matches_the_dense_reference(seed, unstable):
     assert np.allclose(np.triu(chol, 1), 0.0)
 
 
+@pytest.mark.parametrize("seed, strength", [(0, 1.0), (1, 1.0), (0, 1e4), (1, 1e4)])
+def test_step_matrix_from_the_gravity_generators_matches_the_dense_jacobian(seed, strength):
+    """factor_step_matrix on (U, G, Dg) (never stored densely) gives the factors of the dense dF/dq."""
+    from groomtool.rods import dynamics as dyn
+
+    rng = np.random.default_rng(seed)
+    S, n = 4, 7
+    counts = rng.integers(1, n + 1, size=S)
+    lengths = rng.uniform(0.01, 0.04, size=(S, n)) * (np.arange(n)[None, :] < counts[:, None])
+    q = rng.normal(size=(S, n, 3)) * 20 * (lengths > 0)[..., None]
+    frames = np.stack([frame(rng.normal(size=3), rng.normal(size=3)) for _ in range(S)])
+    helix = sh.SuperHelix(rng.normal(size=(S, 3)) * 0.05, frames, lengths, q, counts)
+    mat = Material()
+    M = dyn.mass_matrix(helix, dyn.Inertia.from_material(mat))
+    K = sh.stiffness(helix, mat.stiffness_diag)
+    h = 1 / 240
+    g = np.array([0.0, -9.81, 0.0])
+    dense = sh.gravity_force_jacobian(helix, mat.linear_density, g)
+    parts = sh.gravity_force_jacobian_parts(helix, mat.linear_density, g, sh.kinematics(helix))
+    kw = dict(stiffness=K, k_scale=h * h, b_scale=-h * h * strength)  # 1e4: strong enough to modify strands
+    ref, mod_ref = factor_step_matrix(M, dense, counts, **kw)
+    got, mod = factor_step_matrix(M, parts, counts, **kw)
+    assert mod == mod_ref and (mod > 0 or strength == 1.0)
+    assert np.abs(got - ref).max() <= 1e-10 * np.abs(ref).max()
+
+
 def test_kept_step_corrections_are_the_fresh_ones_at_rest_and_bound_every_mode():
     """A kept correction reproduces the fresh factor when nothing changed, is reused while A/2 + B + C stays
     positive definite (no mode's step factor below 1/2), and is dropped once the strand is stable."""

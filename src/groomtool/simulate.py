@@ -43,6 +43,7 @@ from dataclasses import dataclass, field, replace
 from typing import Callable
 
 import numpy as np
+import scipy.sparse as sp
 from threadpoolctl import threadpool_limits
 
 from .material import Material
@@ -276,7 +277,8 @@ class Simulator:
         rhs[pad] = 0.0
         t0 = self._time("assembly", t0)
         # Mhat = (1 + h alpha) M + (h^2 + h beta) K - h^2 dF/dq, factorised strand by strand
-        dF = sh.gravity_force_jacobian(helix, self.inertia.linear, self.gravity, kin) if p.implicit_gravity else M
+        dF = (sh.gravity_force_jacobian_parts(helix, self.inertia.linear, self.gravity, kin) if p.implicit_gravity
+              else M)
         chol, modified = factor_step_matrix(M, dF, self.n_elements, self._corrections, a_scale=1.0 + h * alpha,
                                             stiffness=self.K, k_scale=h * h + h * p.stiffness_damping,
                                             b_scale=-h * h if p.implicit_gravity else 0.0, out=self._chol)
@@ -318,7 +320,8 @@ class Simulator:
         helix = system.helix
         H = system.H
         # a contact that no dof can move (at the clamped root) transmits nothing: drop it
-        row_norm = np.sqrt(np.asarray(H.multiply(H).sum(axis=1)).ravel()).reshape(-1, 3).max(axis=1)
+        squares = sp.csr_matrix((H.data * H.data, H.indices, H.indptr), shape=H.shape)
+        row_norm = np.sqrt(squares @ np.ones(H.shape[1])).reshape(-1, 3).max(axis=1)
         keep = row_norm > 1e-9 * float(np.max(row_norm, initial=0.0))
         if not np.any(keep):
             return

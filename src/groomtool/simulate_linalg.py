@@ -87,8 +87,10 @@ def _try_cholesky(a):
 
 
 @njit(cache=True)
-def _factor_kernel(A, a_scale, Kd, k_scale, B, b_scale, n_elements, slot, corr, chol, status):
-    """Per strand, on its 3 N_s real dofs: a = a_scale A + diag(k_scale Kd), b = b_scale B; if a/2 + b
+def _factor_kernel(A, a_scale, Kd, k_scale, B, U, G, Dg, b_scale, n_elements, slot, corr, chol, status):
+    """Per strand, on its 3 N_s real dofs: a = a_scale A + diag(k_scale Kd), b = b_scale B (B dense, or
+    when B is empty the symmetric matrix with blocks U_j G_k for j < k and Dg_j on the diagonal: the
+    generators of superhelix.gravity_force_jacobian, never stored densely); if a/2 + b
     is positive definite, chol = cholesky(a + b) (status 0); else with a kept correction C for which
     a/2 + b + C is, chol = cholesky(a + b + C) (status 1); else status 2 (a new eigendecomposition is
     needed: done by the caller).  Padding rows of chol are left as they are."""
@@ -99,8 +101,23 @@ def _factor_kernel(A, a_scale, Kd, k_scale, B, b_scale, n_elements, slot, corr, 
         for i in range(n):
             for j in range(n):
                 a[i, j] = a_scale * A[s, i, j]
-                b[i, j] = b_scale * B[s, i, j]
             a[i, i] += k_scale * Kd[s, i]
+        if B.shape[0] > 0:
+            for i in range(n):
+                for j in range(n):
+                    b[i, j] = b_scale * B[s, i, j]
+        else:
+            for r in range(n // 3):
+                for x in range(3):
+                    for y in range(3):
+                        b[3 * r + x, 3 * r + y] = b_scale * Dg[s, r, x, y]
+                for k in range(r + 1, n // 3):
+                    for x in range(3):
+                        for y in range(3):
+                            v = b_scale * (U[s, r, x, 0] * G[s, k, 0, y] + U[s, r, x, 1] * G[s, k, 1, y]
+                                           + U[s, r, x, 2] * G[s, k, 2, y])
+                            b[3 * r + x, 3 * k + y] = v
+                            b[3 * k + y, 3 * r + x] = v
         L, ok = _try_cholesky(0.5 * a + b)
         st = 0
         if ok:
@@ -120,12 +137,25 @@ def _factor_kernel(A, a_scale, Kd, k_scale, B, b_scale, n_elements, slot, corr, 
                 chol[s, i, j] = L[i, j]
 
 
-def factor_step_matrix(A: np.ndarray, B: np.ndarray, n_elements: np.ndarray,
+def _dense_from_parts(U, G, Dg, n_el: int) -> np.ndarray:
+    """The symmetric (3 n_el, 3 n_el) matrix with blocks U_j G_k (j < k), their transposes, Dg_j."""
+    out = np.zeros((3 * n_el, 3 * n_el))
+    for j in range(n_el):
+        out[3 * j:3 * j + 3, 3 * j:3 * j + 3] = Dg[j]
+        for k in range(j + 1, n_el):
+            block = U[j] @ G[k]
+            out[3 * j:3 * j + 3, 3 * k:3 * k + 3] = block
+            out[3 * k:3 * k + 3, 3 * j:3 * j + 3] = block.T
+    return out
+
+
+def factor_step_matrix(A: np.ndarray, B, n_elements: np.ndarray,
                        corrections: StepCorrections | None = None, *, a_scale: float = 1.0, stiffness=None,
                        k_scale: float = 0.0, b_scale: float = 1.0, out: np.ndarray | None = None
                        ) -> tuple[np.ndarray, int]:
     """Cholesky factors of Mhat = a + b per strand, a = a_scale A + k_scale diag(stiffness) (SPD; e.g.
-    A = M, a_scale = 1 + h alpha, k_scale = h^2 + h beta), b = b_scale B (B = dF/dq, b_scale = -h^2).
+    A = M, a_scale = 1 + h alpha, k_scale = h^2 + h beta), b = b_scale B (B = dF/dq, b_scale = -h^2;
+    B dense (S, n, n) or the tuple (U, G, Dg) of superhelix.gravity_force_jacobian_parts).
 
     Where a/2 + b is positive definite (every mode's step factor 1 + lambda >= 1/2, lambda the
     eigenvalues of b relative to a) Mhat = a + b: gravity is linearly implicit.  Elsewhere a mode of
@@ -150,13 +180,22 @@ def factor_step_matrix(A: np.ndarray, B: np.ndarray, n_elements: np.ndarray,
     Kd = np.zeros((S, n_pad)) if stiffness is None else np.ascontiguousarray(stiffness, dtype=np.float64).reshape(S, -1)
     keep = corrections if corrections is not None else StepCorrections(S)
     status = np.zeros(S, dtype=np.int64)
-    _factor_kernel(np.ascontiguousarray(A), float(a_scale), Kd, float(k_scale), np.ascontiguousarray(B),
+    if isinstance(B, tuple):
+        U, G, Dg = (np.ascontiguousarray(x, dtype=np.float64) for x in B)
+        dense = np.zeros((0, 1, 1))
+    else:
+        dense = np.ascontiguousarray(B, dtype=np.float64)
+        U = G = Dg = np.zeros((0, 1, 3, 3))
+    _factor_kernel(np.ascontiguousarray(A), float(a_scale), Kd, float(k_scale), dense, U, G, Dg,
                    float(b_scale), n_elements, keep.slot if corrections is not None else np.full(S, -1, np.int64),
                    keep.data, out, status)
     for s in np.flatnonzero(status == 2):
         n = 3 * int(n_elements[s])
         a = a_scale * A[s, :n, :n] + np.diag(k_scale * Kd[s, :n])
-        b = b_scale * B[s, :n, :n]
+        if isinstance(B, tuple):
+            b = b_scale * _dense_from_parts(U[s], G[s], Dg[s], n // 3)
+        else:
+            b = b_scale * B[s, :n, :n]
         m = modified_step_matrix(a, b)
         L = _cholesky(m)
         if L is None:

@@ -14,7 +14,7 @@ with the stiffness of the contact forces, restricted to the null space of the bl
 second-order condition of the constrained equilibrium (:func:`held_stiffness_ratios`).
 
 Computation.  A = K^-1/2 dF/dq K^-1/2 is block diagonal plus semiseparable (3x3 blocks, generators from
-superhelix._gravity_hessian_parts scaled by K^-1/2):
+superhelix.gravity_force_jacobian_parts scaled by K^-1/2):
 
     A_jk = u_j v_k^T (j < k),   A_kj = v_k u_j^T,   A_jj = d_j,
 
@@ -70,7 +70,7 @@ def stiffness_ratios(helix: sh.SuperHelix, stiffness_diag, linear_density: float
 def _scaled_generators(helix: sh.SuperHelix, stiffness_diag, linear_density, gravity):
     """u, v, d (S, N, 3, 3) of A = K^-1/2 dF/dq K^-1/2 (module docstring); zero on padding."""
     kin = sh.kinematics(helix)
-    U, G, Dg = sh._gravity_hessian_parts(helix, linear_density, gravity, kin)
+    U, G, Dg = sh.gravity_force_jacobian_parts(helix, linear_density, gravity, kin)
     K = sh.stiffness(helix, stiffness_diag)
     scale = 1.0 / np.sqrt(np.where(K > 0, K, 1.0))
     u = np.empty_like(U)

@@ -590,16 +590,16 @@ def gravity_force(helix: SuperHelix, linear_density: float, gravity, kin: Kinema
 
 def gravity_force_jacobian(helix: SuperHelix, linear_density: float, gravity, kin: Kinematics | None = None):
     """dF/dq per strand, (S, 3N, 3N), symmetric (F is a gradient): blocks U_j G_k above the diagonal,
-    their transposes below, Dg_j on it (:func:`_gravity_hessian_parts`), written once each."""
+    their transposes below, Dg_j on it (:func:`gravity_force_jacobian_parts`), written once each."""
     kin = kin if kin is not None else kinematics(helix)
-    U, G, diag = _gravity_hessian_parts(helix, linear_density, gravity, kin)
+    U, G, diag = gravity_force_jacobian_parts(helix, linear_density, gravity, kin)
     S, N = helix.lengths.shape
     full = np.empty((S, 3 * N, 3 * N))
     _assemble_gravity_jacobian(U, G, diag, full)
     return full
 
 
-def _gravity_hessian_parts(helix: SuperHelix, linear_density: float, gravity, kin: Kinematics):
+def gravity_force_jacobian_parts(helix: SuperHelix, linear_density: float, gravity, kin: Kinematics):
     """The generators of dF/dq, each (S, N, 3, 3): U_j = -rhoS Theta_j^T [g]x and G_k (block (j, k) = U_j G_k
     for j < k, block (k, j) its transpose) and the diagonal blocks Dg_j, the Hessian of
     rhoS u . (P_j + m_{j+1} p_j + Q_j Y_j) in omega_j (module docstring); one compiled pass
