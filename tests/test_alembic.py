@@ -15,7 +15,7 @@ import pytest
 from groomtool.groom import GroomError
 from groomtool.io import load_groom
 from groomtool.rods import superhelix as sh
-from groomtool.viz import fields
+from groomtool.io import fields, results
 from test_viz_fields import synthetic_result
 
 HAVE_ABC = importlib.util.find_spec("alembic3d") is not None
@@ -46,14 +46,14 @@ def _params(path):
 def test_round_trip_against_the_source(result, tmp_path):
     from groomtool.io.alembic import read_alembic, write_alembic
 
-    arrays = fields.load_arrays(result)
+    arrays = results.load_arrays(result)
     samples = fields.sample(arrays)
     path = write_alembic(result, tmp_path / "groom.abc")
     groom = read_alembic(path, scale=0.01)  # Unreal's convention: cm
     assert np.array_equal(groom.offsets, samples.offsets)
     assert np.abs(groom.points - samples.points).max() <= F32_CM
     rest = groom.metadata["rest_data"]
-    want, _ = sh.evaluate(fields.helix(arrays, rest=True), samples.strand, samples.arc)
+    want, _ = sh.evaluate(results.result_helix(arrays, rest=True), samples.strand, samples.arc)
     assert np.abs(rest["rest_position"] - want).max() <= F32_CM
     tips = samples.offsets[1:] - 1
     starts = np.setdiff1d(np.arange(len(want)), tips)
@@ -183,7 +183,7 @@ WRITE = textwrap.dedent('''
 def test_blender_imports_ours_as_hair_curves(result, tmp_path):
     from groomtool.io.alembic import write_alembic
 
-    samples = fields.sample(fields.load_arrays(result))
+    samples = fields.sample(results.load_arrays(result))
     path = write_alembic(result, tmp_path / "groom.abc")
     (tmp_path / "dump.py").write_text(DUMP)
     run = subprocess.run([BPY, str(tmp_path / "dump.py"), str(path), str(tmp_path / "b.npz")],
@@ -227,7 +227,7 @@ def test_groom_export_format_abc(result, tmp_path, capsys):
     assert main(["export", str(tmp_path), "--format", "abc"]) == EXIT_OK
     assert "groom.abc" in capsys.readouterr().out
     groom = load_groom(tmp_path / "groom.abc", units="cm")
-    assert np.array_equal(groom.offsets, fields.sample(fields.load_arrays(result)).offsets)
+    assert np.array_equal(groom.offsets, fields.sample(results.load_arrays(result)).offsets)
     assert main(["export", str(tmp_path), "--format", "abc", "-o", str(tmp_path / "x.usd")]) != EXIT_OK
 
 

@@ -10,7 +10,7 @@ from groomtool import api
 from groomtool.groom import GroomError
 from groomtool.io import load_groom
 from groomtool.material import Material
-from groomtool.viz import fields
+from groomtool.io import fields, results
 from test_viz_fields import synthetic_result
 
 
@@ -61,7 +61,7 @@ def test_export_by_extension(outdir, tmp_path, suffix):
     path = api.export(outdir, tmp_path / f"rest{suffix}")
     assert path.exists()
     if suffix in (".obj", ".hair", ".data"):
-        samples = fields.sample(fields.load_arrays(outdir))
+        samples = fields.sample(results.load_arrays(outdir))
         back = api.load(path)
         assert np.array_equal(back.offsets, samples.offsets)
         assert np.abs(back.points - samples.rest_points).max() < 1e-6
@@ -111,7 +111,7 @@ def test_export_command_default_names(outdir, capsys):
     assert "groom.usdc" in capsys.readouterr().out
     assert run_export([outdir, "--format", "obj", "--shape", "fitted"]) == 0
     fitted = load_groom(outdir / "fitted.obj")
-    assert np.abs(fitted.points - fields.sample(fields.load_arrays(outdir)).points).max() < 1e-6
+    assert np.abs(fitted.points - fields.sample(results.load_arrays(outdir)).points).max() < 1e-6
 
 
 def test_export_command_output_file_and_errors(outdir, tmp_path):

@@ -21,7 +21,7 @@ from scipy.spatial.transform import Rotation  # noqa: E402
 
 from groomtool.io.usd import write_usd  # noqa: E402
 from groomtool.rods import superhelix as sh  # noqa: E402
-from groomtool.viz import fields  # noqa: E402
+from groomtool.io import fields, results  # noqa: E402
 from test_viz_fields import synthetic_result  # noqa: E402
 
 PYTHON = os.environ.get("GROOMTOOL_BPY_PYTHON") or (sys.executable if importlib.util.find_spec("bpy") else None)
@@ -51,7 +51,7 @@ DUMP = textwrap.dedent('''
 
 def test_blender_imports_rest_attributes(tmp_path):
     result = synthetic_result(n_strands=8, seed=6)
-    arrays = fields.load_arrays(result)
+    arrays = results.load_arrays(result)
     samples = fields.sample(arrays)
     path = write_usd(result, tmp_path / "groom.usdc")
     script = tmp_path / "dump.py"
@@ -64,7 +64,7 @@ def test_blender_imports_rest_attributes(tmp_path):
     assert np.array_equal(got["counts"], np.diff(samples.offsets))
     assert np.abs(got["position"] - samples.points).max() <= 2e-6
     # rest position: the rest helices at the vertices' arc lengths
-    want, _ = sh.evaluate(fields.helix(arrays, rest=True), samples.strand, samples.arc)
+    want, _ = sh.evaluate(results.result_helix(arrays, rest=True), samples.strand, samples.arc)
     assert np.abs(got["rest_position"] - want).max() <= 2e-6
     tips = samples.offsets[1:] - 1
     starts = np.setdiff1d(np.arange(len(want)), tips)

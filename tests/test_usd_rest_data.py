@@ -12,7 +12,7 @@ from scipy.spatial.transform import Rotation  # noqa: E402
 from groomtool.io.usd import read_usd, write_usd  # noqa: E402
 from groomtool.rods import superhelix as sh  # noqa: E402
 from groomtool.rods.der import der_rest_data  # noqa: E402
-from groomtool.viz import fields  # noqa: E402
+from groomtool.io import fields, results  # noqa: E402
 from test_viz_fields import synthetic_result  # noqa: E402
 
 F32 = 2e-6  # float32 round-off on unit vectors / metre-scale values
@@ -46,14 +46,14 @@ def result():
 
 
 def test_rest_attributes_match_the_rest_helices(result, tmp_path):
-    arrays = fields.load_arrays(result)
+    arrays = results.load_arrays(result)
     samples = fields.sample(arrays)
     stage = _stage(result, tmp_path)  # held: prims do not keep their stage alive
     prim = stage.GetPrimAtPath("/Groom/Strands")
     points = _get(prim, "points")
     offsets = samples.offsets
     # rest positions: the rest helices at the same arc lengths as the groomed vertices
-    want, _ = sh.evaluate(fields.helix(arrays, rest=True), samples.strand, samples.arc)
+    want, _ = sh.evaluate(results.result_helix(arrays, rest=True), samples.strand, samples.arc)
     for name in ("physics:restShapePoints", "primvars:rest_position"):
         got = _get(prim, name)
         assert got.shape == points.shape
@@ -92,7 +92,7 @@ def test_rest_attributes_match_the_rest_helices(result, tmp_path):
 
 
 def test_frames_are_quaternions_that_read_back_as_matrices(result, tmp_path):
-    arrays = fields.load_arrays(result)
+    arrays = results.load_arrays(result)
     samples = fields.sample(arrays)
     path = write_usd(result, tmp_path / "q.usda")
     stage = Usd.Stage.Open(str(path))
@@ -139,7 +139,7 @@ def test_per_strand_material_primvars(tmp_path):
     for key in ("stiffness_factor", "strand_young_modulus", "strand_shear_modulus"):
         assert np.array_equal(rest[key], r.extra_arrays[key]), key  # exact
     assert rest["young_modulus"] == r.material.young_modulus  # the scalar stays a scalar
-    arrays = {k: v for k, v in fields.load_arrays(synthetic_result(n_strands=5, seed=4, contacts=False)).items()
+    arrays = {k: v for k, v in results.load_arrays(synthetic_result(n_strands=5, seed=4, contacts=False)).items()
               if k not in ("stiffness_factor", "strand_young_modulus", "strand_shear_modulus")}
     plain = write_usd(arrays, tmp_path / "p.usdc")  # a result without per-strand material: the scalar
     stage = Usd.Stage.Open(str(plain))
@@ -151,7 +151,7 @@ def test_per_strand_material_primvars(tmp_path):
 @pytest.mark.parametrize("up, gravity, axis", [("-y", (0, 9.81, 0), "Y"), ("x", (-9.81, 0, 0), "Y"),
                                                ("-z", (0, 0, 9.81), "Z")])
 def test_signed_up_axis(result, tmp_path, up, gravity, axis):
-    arrays = dict(fields.load_arrays(result))
+    arrays = dict(results.load_arrays(result))
     arrays["gravity"] = np.array(gravity, dtype=np.float64)
     path = write_usd(arrays, tmp_path / "up.usda")
     stage = Usd.Stage.Open(str(path))

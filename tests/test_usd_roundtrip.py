@@ -11,7 +11,7 @@ from groomtool.groom import GroomError  # noqa: E402
 from groomtool.io import load_groom  # noqa: E402
 from groomtool.io.usd import read_usd, write_usd  # noqa: E402
 from groomtool.rods.der import der_rest_data  # noqa: E402
-from groomtool.viz import fields  # noqa: E402
+from groomtool.io import fields, results  # noqa: E402
 from test_viz_fields import synthetic_result  # noqa: E402
 
 # (name, interpolation, type) as listed in docs/usd.md, on /Groom/Strands: all float (DCCs drop doubles)
@@ -73,7 +73,7 @@ def test_stage_layout_and_primvars(result, tmp_path, suffix):
     strands = UsdGeom.BasisCurves(rendered[0])
     assert strands.GetTypeAttr().Get() == UsdGeom.Tokens.linear
     assert list(strands.GetCurveVertexCountsAttr().Get()) == list(np.diff(fields.sample(
-        fields.load_arrays(result)).offsets))
+        results.load_arrays(result)).offsets))
     assert strands.GetWidthsAttr().Get()[0] == pytest.approx(2 * result.material.radius)
     assert strands.GetWidthsInterpolation() == UsdGeom.Tokens.constant
     pv = UsdGeom.PrimvarsAPI(rendered[0])
@@ -99,7 +99,7 @@ def test_stage_layout_and_primvars(result, tmp_path, suffix):
 
 
 def test_round_trip_strands_and_rest_data(result, tmp_path):
-    arrays = fields.load_arrays(result)
+    arrays = results.load_arrays(result)
     samples = fields.sample(arrays)
     groom = read_usd(write_usd(result, tmp_path / "groom.usda"))
     assert groom.up == "y" and groom.n_strands == result.helix.n_strands

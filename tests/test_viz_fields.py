@@ -15,7 +15,7 @@ from groomtool.invert import InversionParams, InversionResult, isolated_rest_cur
 from groomtool.material import Material
 from groomtool.rods import superhelix as sh
 from groomtool.stability import stiffness_ratios
-from groomtool.viz import fields
+from groomtool.io import fields, results
 
 HEAD_RADIUS = 0.1
 
@@ -110,25 +110,25 @@ def result():
 
 
 def test_helix_round_trips_through_the_arrays(result):
-    arrays = fields.load_arrays(result)
-    h = fields.helix(arrays)
+    arrays = results.load_arrays(result)
+    h = results.result_helix(arrays)
     assert np.array_equal(h.lengths, result.helix.lengths)
     assert np.array_equal(h.curvatures, result.helix.curvatures)
-    assert np.array_equal(fields.helix(arrays, rest=True).curvatures, result.rest_curvatures)
-    assert fields.up_axis(arrays) == "y"
-    assert fields.up_axis(fields.load_arrays(synthetic_result(up="z", contacts=False))) == "z"
+    assert np.array_equal(results.result_helix(arrays, rest=True).curvatures, result.rest_curvatures)
+    assert results.up_axis(arrays) == "y"
+    assert results.up_axis(results.load_arrays(synthetic_result(up="z", contacts=False))) == "z"
 
 
 def test_load_arrays_from_a_directory(result, tmp_path):
     result.save(tmp_path, formats=("npz",))
-    arrays = fields.load_arrays(tmp_path)
+    arrays = results.load_arrays(tmp_path)
     assert np.array_equal(arrays["rest_curvatures"], result.helix.to_flat(result.rest_curvatures))
     with pytest.raises(ValueError, match="no such file"):
-        fields.load_arrays(tmp_path / "nothing")
+        results.load_arrays(tmp_path / "nothing")
 
 
 def test_samples_match_the_result_shapes(result):
-    samples = fields.sample(fields.load_arrays(result), per_element=8)
+    samples = fields.sample(results.load_arrays(result), per_element=8)
     pts, off = result.fitted_shape(8)
     rest, _ = result.rest_shape(8)
     assert np.array_equal(samples.offsets, off)
@@ -141,7 +141,7 @@ def test_samples_match_the_result_shapes(result):
 
 
 def test_vertex_fields(result):
-    arrays = fields.load_arrays(result)
+    arrays = results.load_arrays(result)
     samples = fields.sample(arrays, 4)
     f = fields.vertex_fields(arrays, samples)
     V = len(samples.points)
@@ -163,7 +163,7 @@ def test_vertex_fields(result):
 
 
 def test_nearest_samples_picks_the_closest_arc_length(result):
-    samples = fields.sample(fields.load_arrays(result), 4)
+    samples = fields.sample(results.load_arrays(result), 4)
     rng = np.random.default_rng(3)
     strand = rng.integers(0, result.helix.n_strands, 50)
     s = rng.uniform(-0.01, 1.1, 50) * result.helix.strand_lengths[strand]

@@ -7,7 +7,7 @@ pv = pytest.importorskip("pyvista", reason="pyvista is not installed")
 
 from groomtool.groom import GroomError  # noqa: E402
 from groomtool.io.vtp import lines_connectivity, write_vtp  # noqa: E402
-from groomtool.viz import fields  # noqa: E402
+from groomtool.io import fields, results  # noqa: E402
 from test_viz_fields import synthetic_result  # noqa: E402
 
 POINT_ARRAYS = {  # name: components (docs/outputs.md, VTP point data)
@@ -27,7 +27,7 @@ def result():
 def test_vtp_opens_with_the_arrays(result, tmp_path):
     path = write_vtp(result, tmp_path / "groom.vtp", head_path=tmp_path / "head.vtp")
     mesh = pv.read(path)
-    arrays = fields.load_arrays(result)
+    arrays = results.load_arrays(result)
     samples = fields.sample(arrays)
     S = result.helix.n_strands
     assert mesh.n_lines == S and mesh.n_cells == S
@@ -58,7 +58,7 @@ def test_vtp_opens_with_the_arrays(result, tmp_path):
 
 def test_rest_shape_vtp(result, tmp_path):
     mesh = pv.read(write_vtp(result, tmp_path / "rest.vtp", shape="rest"))
-    samples = fields.sample(fields.load_arrays(result))
+    samples = fields.sample(results.load_arrays(result))
     assert np.allclose(mesh.points, samples.rest_points, atol=1e-12)
     assert np.allclose(mesh.points - mesh.point_data["rest_displacement"], samples.points, atol=1e-12)
 

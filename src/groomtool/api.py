@@ -101,13 +101,13 @@ def export(result, path, shape: str = "rest", per_element: int = 8) -> Path:
         from .io.vtp import write_vtp
 
         return write_vtp(result, path, per_element=per_element, shape=shape)
-    from .io import save_groom
-    from .viz import fields
+    from .io import fields, save_groom
+    from .io.results import load_arrays, up_axis
 
-    arrays = fields.load_arrays(result)
+    arrays = load_arrays(result)
     samples = fields.sample(arrays, per_element)
     points = samples.rest_points if shape == "rest" else samples.points
-    groom = Groom(points, samples.offsets, up=fields.up_axis(arrays), source=f"{shape} shape")
+    groom = Groom(points, samples.offsets, up=up_axis(arrays), source=f"{shape} shape")
     return save_groom(groom, path)
 
 
@@ -136,20 +136,7 @@ def simulate(result, seconds: float = 1.0, **options):
 def _simulation_inputs(source):
     """(helix, rest curvatures (S, N, 3), material, gravity, head trimesh or None, per-strand stiffness factors
     or None) of a saved result."""
-    from .viz import fields
+    from .io.results import read_result
 
-    arrays = fields.load_arrays(source)
-    gravity = np.asarray(arrays["gravity"], dtype=np.float64)
-    material = Material(**{k: float(arrays[k]) for k in ("young_modulus", "radius", "density", "friction",
-                                                         "shear_modulus")}, gravity=float(np.linalg.norm(gravity)))
-    head = None
-    mesh = fields.head_mesh(arrays)
-    if mesh is not None:
-        import trimesh
-
-        head = trimesh.Trimesh(mesh[0], mesh[1], process=False)
-    factor = np.asarray(arrays["stiffness_factor"], dtype=np.float64) if "stiffness_factor" in arrays else None
-    helix = fields.helix(arrays)
-    if factor is not None and factor.shape != (helix.n_strands,):
-        factor = None
-    return helix, fields.helix(arrays, rest=True).curvatures, material, gravity, head, factor
+    saved = read_result(source)
+    return saved.helix(), saved.rest_curvatures, saved.material, saved.gravity, saved.head(), saved.stiffness_factor

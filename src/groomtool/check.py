@@ -34,6 +34,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
+from .io.results import read_result
 from .material import Material
 from .rods import superhelix as sh
 from .simulate import SimulationParams, simulate
@@ -113,76 +114,15 @@ class InvertedGroom:
 
 def load_inverted(outdir) -> InvertedGroom:
     """Read rest.npz (and report.json when present) of an inversion output directory."""
-    import trimesh
-
-    from .viz import fields
-
-    arrays = fields.load_arrays(outdir)
-    helix = fields.helix(arrays)
-    rest = fields.helix(arrays, rest=True).curvatures
-
-    def scalar(name, default):
-        return float(arrays[name]) if name in arrays else default
-
-    d = Material()
-    material = Material(young_modulus=scalar("young_modulus", d.young_modulus), radius=scalar("radius", d.radius),
-                        density=scalar("density", d.density), friction=scalar("friction", d.friction),
-                        shear_modulus=scalar("shear_modulus", None) if "shear_modulus" in arrays else None)
-    gravity = np.asarray(arrays.get("gravity", [0.0, -d.gravity, 0.0]), dtype=np.float64).reshape(3)
-    mesh = fields.head_mesh(arrays)
-    head = trimesh.Trimesh(mesh[0], mesh[1], process=False) if mesh is not None else None
-    report = {}
-    folder = Path(outdir) if Path(outdir).is_dir() else Path(outdir).parent
-    if (folder / "report.json").is_file():
-        from .io.result_check import read_report
-
-        report = read_report(folder)
-    params = report.get("parameters", {})
-    contacts = params.get("contacts", "all" if head is not None else "none")
-    radius = scalar("contact_radius", None) if "contact_radius" in arrays else None
-    if radius is None or not np.isfinite(radius):  # NaN: written without contacts
-        radius = report.get("contacts", {}).get("radius_m") or params.get("contact_radius_m")
-    ratio = np.asarray(arrays.get("stiffness_ratio", np.zeros(0)), dtype=np.float64)
-    strand_stiffness, factor = per_strand_stiffness(arrays, material, helix.n_strands)
-    forces = None
-    if len(arrays.get("contact_forces", ())):
-        record = SimpleNamespace(strand_a=np.asarray(arrays["contact_strand_a"]), s_a=np.asarray(arrays["contact_s_a"]),
-                                 strand_b=np.asarray(arrays["contact_strand_b"]), s_b=np.asarray(arrays["contact_s_b"]),
-                                 frame=np.asarray(arrays["contact_frames"], dtype=np.float64).reshape(-1, 3, 3)
-                                 if "contact_frames" in arrays else None)
-        forces = (record, np.asarray(arrays["contact_forces"], dtype=np.float64).reshape(-1, 3))
-    return InvertedGroom(helix=helix, rest_curvatures=rest, material=material, gravity=gravity, head=head,
-                         contacts=contacts, contact_radius=radius, source=str(arrays.get("source", outdir)),
-                         up=fields.up_axis(arrays), stiffness_ratio=ratio if ratio.size == helix.n_strands else None,
-                         contact_forces=forces, strand_stiffness=strand_stiffness, stiffness_factor=factor)
-
-
-def per_strand_stiffness(arrays: dict, material: Material, n_strands: int):
-    """((S, 3) per-unit-length (GJ_s, EI_s, EI_s) or None, stiffness_factor (S,) or None) from rest.npz.
-
-    E_s = strand_young_modulus (else E), G_s = strand_shear_modulus (else G E_s / E); without either
-    array but with stiffness_factor: (GJ, EI, EI) x factor_s.  Arrays of the wrong length are an error."""
-
-    def per_strand(name):
-        if name not in arrays:
-            return None
-        x = np.asarray(arrays[name], dtype=np.float64).reshape(-1)
-        if x.size != n_strands:
-            raise ValueError(f"rest.npz: {name} has {x.size} values for {n_strands} strands")
-        if not np.all(np.isfinite(x) & (x > 0)):
-            bad = int(np.flatnonzero(~(np.isfinite(x) & (x > 0)))[0])
-            raise ValueError(f"rest.npz: {name} of strand {bad} is {x[bad]} (must be positive)")
-        return x
-
-    E_s, G_s, factor = (per_strand(n) for n in ("strand_young_modulus", "strand_shear_modulus", "stiffness_factor"))
-    I = material.second_moment
-    if E_s is None and G_s is None:
-        if factor is None:
-            return None, None
-        return factor[:, None] * np.asarray(material.stiffness_diag)[None, :], factor
-    E_s = np.full(n_strands, material.young_modulus) if E_s is None else E_s
-    G_s = material.G * E_s / material.young_modulus if G_s is None else G_s
-    return np.stack([G_s * 2.0 * I, E_s * I, E_s * I], axis=1), factor
+    saved = read_result(outdir)
+    helix = saved.helix()
+    material = saved.material
+    strand_stiffness, factor = saved.per_strand_stiffness(material)
+    return InvertedGroom(helix=helix, rest_curvatures=saved.rest_curvatures, material=material, gravity=saved.gravity,
+                         head=saved.head(), contacts=saved.contacts, contact_radius=saved.contact_radius,
+                         source=str(saved.arrays.get("source", outdir)), up=saved.up,
+                         stiffness_ratio=saved.stiffness_ratio, contact_forces=saved.contact_forces,
+                         strand_stiffness=strand_stiffness, stiffness_factor=factor)
 
 
 def tip_drifts(tips: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -35,7 +35,7 @@ def export_formats(source, outdir, formats, shape: str | None = None, per_elemen
     for a single format); returns the written paths.  ``shape`` (hair, obj, vtp): "rest" or
     "fitted", default rest for hair/obj and fitted for vtp.  ``groom invert --format`` calls this too."""
     from ..api import export
-    from ..viz.fields import head_mesh, load_arrays
+    from ..io.results import head_mesh, load_arrays
 
     arrays = load_arrays(source)
     outdir = Path(outdir)

@@ -48,14 +48,15 @@ def _modules(path):
 def write_alembic(source, path, per_element: int = 8, guides: bool = False) -> Path:
     """Write a result (``InversionResult``, output directory, rest.npz or its arrays) as an Alembic
     groom in centimetres with Unreal's ``groom_*`` attributes; written atomically, returns the path."""
-    from ..viz import fields
+    from . import fields
+    from .results import load_arrays
     from .usd import _consumer_rest, _rod_data
 
     path = Path(path)
     Abc, AbcGeom, imath = _modules(path)
     if path.suffix.lower() != ".abc":
         raise GroomError(f"{path}: Alembic files end in .abc")
-    arrays = fields.load_arrays(source)
+    arrays = load_arrays(source)
     samples = fields.sample(arrays, per_element)
     points, offsets, rod_data, _, arc = _rod_data(arrays, samples)
     rest = _consumer_rest(arrays, points, offsets, arc, rod_data)

@@ -1,22 +1,38 @@
-"""Write an inversion result into an output directory: rest.npz, rest_shape.obj, fitted.obj, report.json.
+"""An inversion result's output directory: written here (rest.npz, rest_shape.obj, fitted.obj,
+report.json) and read back here; the only module that knows rest.npz's keys and their defaults.
 
-The directory is one atomic set (io/outset.py): all files are written into a staging directory and
-swapped in together, so the directory holds the old complete set or the new one, never a mix, and
-no stale output of an earlier run.  The schema of rest.npz is documented in docs/outputs.md.
+Writing: the directory is one atomic set (io/outset.py): all files are written into a staging
+directory and swapped in together, so the directory holds the old complete set or the new one, never
+a mix, and no stale output of an earlier run.  The schema of rest.npz is documented in
+docs/outputs.md.
+
+Reading: :func:`load_arrays` gives the checked rest.npz arrays of a result (an ``InversionResult``, an
+output directory, its rest.npz or the arrays themselves); :func:`read_result` the typed view of them
+(:class:`SavedResult`: helices, rest curvatures, material, gravity, head, per-strand stiffness,
+contact forces, report.json), which ``groom check`` / ``groom simulate``, the Python API and the
+exporters (io/fields.py) use.
 """
 
 from __future__ import annotations
 
 import json
+import zipfile
+from dataclasses import dataclass, field
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 
 from ..groom import Groom, GroomError
+from ..material import Material
+from ..rods import superhelix as sh
 from .atomic import atomic_open
 from .outset import output_set
+from .result_check import check_result_arrays, read_report
 
 NPZ_SCHEMA_VERSION = 1
+REQUIRED = ("strand_offsets", "element_lengths", "root_positions", "root_frames", "curvatures",
+            "rest_curvatures")
 
 
 def result_arrays(result) -> dict:
@@ -124,3 +140,207 @@ def write_result(result, outdir, formats=("npz", "obj", "json"), extra=None) -> 
         raise GroomError(f"{outdir}: cannot write the outputs: {exc.strerror or exc}; "
                          "the directory is unchanged") from exc
     return [Path(outdir) / name for name in written]
+
+
+# --------------------------------------------------------------------------------------- reading
+def load_arrays(source) -> dict:
+    """The rest.npz arrays of ``source`` (result object, directory, rest.npz path or dict)."""
+    if isinstance(source, dict):
+        arrays = source
+    elif hasattr(source, "helix") and hasattr(source, "rest_curvatures"):
+        arrays = result_arrays(source)
+        arrays["source"] = np.array(str(source.groom.source))
+    else:
+        path = Path(source)
+        if path.is_dir():
+            path = path / "rest.npz"
+        if not path.is_file():
+            raise GroomError(f"{path}: no such file (give an output directory of 'groom invert' or its rest.npz)")
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                arrays = {k: z[k] for k in z.files}
+        except (OSError, ValueError, zipfile.BadZipFile) as exc:
+            raise GroomError(f"{path}: not a readable rest.npz: {exc}") from exc
+        arrays["source"] = np.array(str(path))
+        missing = [k for k in REQUIRED if k not in arrays]
+        if missing:
+            raise GroomError(f"{path}: lacks {', '.join(missing)}: not a groomtool result")
+        check_result_arrays(arrays, str(path))
+    missing = [k for k in REQUIRED if k not in arrays]
+    if missing:
+        raise GroomError(f"result arrays lack {', '.join(missing)}: not a groomtool result")
+    return arrays
+
+
+def up_axis(arrays: dict) -> str:
+    """"y" or "z": the axis opposite to gravity (rest.npz ``gravity``), "y" when unknown."""
+    g = np.asarray(arrays.get("gravity", np.zeros(3)), dtype=np.float64).reshape(-1)
+    if g.size != 3 or not np.any(g):
+        return "y"
+    return "z" if int(np.argmax(np.abs(g))) == 2 else "y"
+
+
+def result_helix(arrays: dict, rest: bool = False) -> sh.SuperHelix:
+    """The fitted Super-Helices (``rest=True``: with the rest curvatures), padded."""
+    offsets = np.asarray(arrays["strand_offsets"], dtype=np.int64)
+    counts = np.diff(offsets)
+    n_max = int(counts.max()) if len(counts) else 0
+    mask = np.arange(n_max)[None, :] < counts[:, None]
+    lengths = np.zeros(mask.shape)
+    lengths[mask] = arrays["element_lengths"]
+    q = np.zeros(mask.shape + (3,))
+    q[mask] = np.asarray(arrays["rest_curvatures" if rest else "curvatures"]).reshape(-1, 3)
+    return sh.SuperHelix(arrays["root_positions"], arrays["root_frames"], lengths, q, counts)
+
+
+def head_mesh(arrays: dict):
+    """(vertices (n, 3), faces (f, 3)) of the head stored in the result, or None."""
+    v = np.asarray(arrays.get("head_vertices", np.zeros((0, 3))), dtype=np.float64).reshape(-1, 3)
+    f = np.asarray(arrays.get("head_faces", np.zeros((0, 3))), dtype=np.int64).reshape(-1, 3)
+    return (v, f) if len(v) and len(f) else None
+
+
+def per_strand_stiffness(arrays: dict, material: Material, n_strands: int):
+    """((S, 3) per-unit-length (GJ_s, EI_s, EI_s) or None, stiffness_factor (S,) or None) from rest.npz.
+
+    E_s = strand_young_modulus (else E), G_s = strand_shear_modulus (else G E_s / E); without either
+    array but with stiffness_factor: (GJ, EI, EI) x factor_s.  Arrays of the wrong length are an error."""
+
+    def per_strand(name):
+        if name not in arrays:
+            return None
+        x = np.asarray(arrays[name], dtype=np.float64).reshape(-1)
+        if x.size != n_strands:
+            raise ValueError(f"rest.npz: {name} has {x.size} values for {n_strands} strands")
+        if not np.all(np.isfinite(x) & (x > 0)):
+            bad = int(np.flatnonzero(~(np.isfinite(x) & (x > 0)))[0])
+            raise ValueError(f"rest.npz: {name} of strand {bad} is {x[bad]} (must be positive)")
+        return x
+
+    E_s, G_s, factor = (per_strand(n) for n in ("strand_young_modulus", "strand_shear_modulus", "stiffness_factor"))
+    I = material.second_moment
+    if E_s is None and G_s is None:
+        if factor is None:
+            return None, None
+        return factor[:, None] * np.asarray(material.stiffness_diag)[None, :], factor
+    E_s = np.full(n_strands, material.young_modulus) if E_s is None else E_s
+    G_s = material.G * E_s / material.young_modulus if G_s is None else G_s
+    return np.stack([G_s * 2.0 * I, E_s * I, E_s * I], axis=1), factor
+
+
+@dataclass
+class SavedResult:
+    """A result read back (:func:`read_result`): rest.npz's arrays (``arrays``, checked) and
+    report.json (``report``, {} when absent), with typed accessors and the defaults of missing keys
+    (a rest.npz written before a key existed)."""
+
+    arrays: dict
+    report: dict = field(default_factory=dict)
+
+    @property
+    def source(self) -> str:
+        return str(self.arrays["source"]) if "source" in self.arrays else ""
+
+    def helix(self, rest: bool = False) -> sh.SuperHelix:
+        """The fitted Super-Helices, padded (``rest=True``: with the rest curvatures)."""
+        return result_helix(self.arrays, rest=rest)
+
+    @property
+    def rest_curvatures(self) -> np.ndarray:
+        """(S, N, 3) rest curvatures, padded like :meth:`helix`."""
+        return self.helix(rest=True).curvatures
+
+    def scalar(self, name: str, default=None):
+        """A scalar array of rest.npz as a float, ``default`` when absent."""
+        return float(self.arrays[name]) if name in self.arrays else default
+
+    @property
+    def gravity(self) -> np.ndarray:
+        """(3,) m/s^2; default: the default material's gravity along -y."""
+        return np.asarray(self.arrays.get("gravity", [0.0, -Material.gravity, 0.0]), dtype=np.float64).reshape(3)
+
+    @property
+    def material(self) -> Material:
+        """The scalar material written; the defaults of :class:`Material` for missing entries."""
+        d = Material()
+        arrays = self.arrays
+        return Material(young_modulus=self.scalar("young_modulus", d.young_modulus),
+                        radius=self.scalar("radius", d.radius), density=self.scalar("density", d.density),
+                        friction=self.scalar("friction", d.friction), shear_modulus=self.scalar("shear_modulus"),
+                        gravity=float(np.linalg.norm(self.gravity)) if "gravity" in arrays else d.gravity)
+
+    @property
+    def head_mesh(self):
+        """(vertices, faces) of the stored head, or None."""
+        return head_mesh(self.arrays)
+
+    def head(self):
+        """The stored head as a ``trimesh.Trimesh`` (not processed), or None."""
+        mesh = self.head_mesh
+        if mesh is None:
+            return None
+        import trimesh
+
+        return trimesh.Trimesh(mesh[0], mesh[1], process=False)
+
+    @property
+    def up(self) -> str:
+        return up_axis(self.arrays)
+
+    @property
+    def stiffness_factor(self) -> np.ndarray | None:
+        """(S,) per-strand stiffness factors (docs/stability.md), None when absent or not one per strand."""
+        if "stiffness_factor" not in self.arrays:
+            return None
+        factor = np.asarray(self.arrays["stiffness_factor"], dtype=np.float64)
+        n_strands = len(self.arrays["strand_offsets"]) - 1
+        return factor if factor.shape == (n_strands,) else None
+
+    def per_strand_stiffness(self, material: Material | None = None):
+        """:func:`per_strand_stiffness` of these arrays (``material``: default :attr:`material`)."""
+        material = self.material if material is None else material
+        return per_strand_stiffness(self.arrays, material, len(self.arrays["strand_offsets"]) - 1)
+
+    @property
+    def stiffness_ratio(self) -> np.ndarray | None:
+        """(S,) stability ratios (< 1: stable), None when not one per strand."""
+        ratio = np.asarray(self.arrays.get("stiffness_ratio", np.zeros(0)), dtype=np.float64)
+        return ratio if ratio.size == len(self.arrays["strand_offsets"]) - 1 else None
+
+    @property
+    def contacts(self) -> str:
+        """The inversion's contact mode (report.json), else "all" with a stored head, "none" without."""
+        return self.report.get("parameters", {}).get("contacts", "all" if self.head_mesh is not None else "none")
+
+    @property
+    def contact_radius(self) -> float | None:
+        """m: rest.npz's contact_radius, else report.json's; None when neither has one."""
+        radius = self.scalar("contact_radius")
+        if radius is None or not np.isfinite(radius):  # NaN: written without contacts
+            radius = self.report.get("contacts", {}).get("radius_m") or self.report.get("parameters", {}).get(
+                "contact_radius_m")
+        return radius
+
+    @property
+    def contact_forces(self):
+        """(record, forces (m, 3) N) of the contacts solved, None without: the record has strand_a, s_a,
+        strand_b, s_b and frame ((m, 3, 3) rows N, T1, T2; None when not written)."""
+        arrays = self.arrays
+        if not len(arrays.get("contact_forces", ())):
+            return None
+        record = SimpleNamespace(strand_a=np.asarray(arrays["contact_strand_a"]), s_a=np.asarray(arrays["contact_s_a"]),
+                                 strand_b=np.asarray(arrays["contact_strand_b"]), s_b=np.asarray(arrays["contact_s_b"]),
+                                 frame=np.asarray(arrays["contact_frames"], dtype=np.float64).reshape(-1, 3, 3)
+                                 if "contact_frames" in arrays else None)
+        return record, np.asarray(arrays["contact_forces"], dtype=np.float64).reshape(-1, 3)
+
+
+def read_result(source) -> SavedResult:
+    """The typed view of a result: rest.npz's arrays (:func:`load_arrays`) and, for an output
+    directory or its rest.npz, the report.json beside it (when present)."""
+    arrays = load_arrays(source)
+    report = {}
+    if isinstance(source, (str, Path)):
+        folder = Path(source) if Path(source).is_dir() else Path(source).parent
+        report = read_report(folder)
+    return SavedResult(arrays, report)

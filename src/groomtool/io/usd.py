@@ -29,8 +29,9 @@ from pxr import Gf, Sdf, Usd, UsdGeom, UsdPhysics, UsdUtils, Vt
 
 from ..groom import Groom, GroomError
 from ..rods import superhelix as sh
-from ..viz import fields
+from . import fields
 from .atomic import atomic_path
+from .results import head_mesh, load_arrays, result_helix
 from .validate import validate
 
 SCHEMA_VERSION = 2
@@ -60,7 +61,7 @@ def write_usd(source, path, per_element: int = 8, head=None) -> Path:
     ``per_element``: samples per helix element of the sampled shapes; ``head``: a trimesh used when
     the result holds no head.  Written atomically; returns the path.
     """
-    arrays = fields.load_arrays(source)
+    arrays = load_arrays(source)
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix not in (".usda", ".usdc", ".usd", ".usdz"):
@@ -130,7 +131,7 @@ def build_stage(arrays: dict, per_element: int = 8, head=None) -> Usd.Stage:
     rest_curves.CreatePurposeAttr(UsdGeom.Tokens.guide)
     _quat_primvar(UsdGeom.PrimvarsAPI(rest_curves), "orient", rest["rotation"])
     _write_contacts(stage, arrays, radius)
-    mesh = fields.head_mesh(arrays)
+    mesh = head_mesh(arrays)
     if mesh is None and head is not None:
         mesh = (np.asarray(head.vertices), np.asarray(head.faces))
     if mesh is not None:
@@ -154,7 +155,7 @@ def _rest_arc(arrays: dict, points: np.ndarray, offsets: np.ndarray) -> np.ndarr
     arc = fields.polyline_arc(points, offsets)
     counts = np.diff(offsets)
     tips = arc[np.maximum(offsets[1:] - 1, 0)]
-    lengths = fields.helix(arrays).strand_lengths
+    lengths = result_helix(arrays).strand_lengths
     strand = np.repeat(np.arange(len(counts)), counts)
     return arc * (lengths / np.where(tips > 0, tips, 1.0))[strand]
 
@@ -227,7 +228,7 @@ def _consumer_rest(arrays: dict, points: np.ndarray, offsets: np.ndarray, arc, r
     strand = np.repeat(np.arange(S), counts)
     if arc is None:
         arc = _rest_arc(arrays, points, offsets)
-    rest_helix = fields.helix(arrays, rest=True)
+    rest_helix = result_helix(arrays, rest=True)
     rest_points, _ = sh.evaluate(rest_helix, strand, arc)
     out = {"points": rest_points}
     if np.any(counts < 2):
@@ -241,7 +242,7 @@ def _consumer_rest(arrays: dict, points: np.ndarray, offsets: np.ndarray, arc, r
     elif "der_frames" in rod_data:
         groomed = rod_data["der_frames"][0]
     else:
-        _, fitted_frames = sh.evaluate(fields.helix(arrays), strand[e0], mid)
+        _, fitted_frames = sh.evaluate(result_helix(arrays), strand[e0], mid)
         groomed = _edge_frames(points, offsets, fitted_frames)
     q_rest = frames_to_quaternions(rest_frames)
     rotation = _per_vertex(q_rest, offsets)

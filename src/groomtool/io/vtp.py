@@ -13,8 +13,9 @@ from pathlib import Path
 import numpy as np
 
 from ..groom import GroomError
-from ..viz import fields
+from . import fields
 from .atomic import atomic_path
+from .results import head_mesh, load_arrays
 
 SHAPES = ("fitted", "rest")
 MATERIAL_KEYS = ("young_modulus", "shear_modulus", "radius", "density", "friction", "gravity")
@@ -39,7 +40,7 @@ def strands_polydata(source, per_element: int = 8, shape: str = "fitted"):
 
     if shape not in SHAPES:
         raise GroomError(f"shape must be one of {SHAPES}, got {shape!r}")
-    arrays = fields.load_arrays(source)
+    arrays = load_arrays(source)
     samples = fields.sample(arrays, per_element)
     points = samples.points if shape == "fitted" else samples.rest_points
     poly = pv.PolyData(np.ascontiguousarray(points), lines=lines_connectivity(samples.offsets))
@@ -58,7 +59,7 @@ def head_polydata(source, head=None):
     """The result's head mesh (else the trimesh ``head``) as ``pyvista.PolyData``, or None."""
     import pyvista as pv
 
-    mesh = fields.head_mesh(fields.load_arrays(source))
+    mesh = head_mesh(load_arrays(source))
     if mesh is None and head is not None:
         mesh = (np.asarray(head.vertices, dtype=np.float64), np.asarray(head.faces, dtype=np.int64))
     if mesh is None:
@@ -76,7 +77,7 @@ def write_vtp(source, path, per_element: int = 8, shape: str = "fitted", head_pa
     path = Path(path)
     if path.suffix.lower() != ".vtp":
         raise GroomError(f"{path}: VTK PolyData files end in .vtp")
-    arrays = fields.load_arrays(source)
+    arrays = load_arrays(source)
     poly = strands_polydata(arrays, per_element, shape)
     with atomic_path(path) as tmp:
         poly.save(tmp, binary=True)

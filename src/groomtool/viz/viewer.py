@@ -15,12 +15,13 @@ from pathlib import Path
 import numpy as np
 
 from ..groom import GroomError
-from . import fields
+from ..io import fields
+from ..io.results import load_arrays, up_axis
 
 
 @dataclass(frozen=True)
 class ColorBy:
-    field: str  # vertex field of viz.fields
+    field: str  # vertex field of io.fields
     title: str  # scalar bar title, with the unit
     scale: float  # display value = field * scale
     cmap: str  # a matplotlib colour map ...
@@ -98,7 +99,7 @@ def build_plotter(source, color: str = "curvature-change", rest: bool = False, h
     if color not in COLORS:
         raise GroomError(f"--color must be one of {', '.join(COLORS)}, got {color!r}")
     spec = COLORS[color]
-    arrays = fields.load_arrays(source)
+    arrays = load_arrays(source)
     samples = fields.sample(arrays, per_element)
     vfields = fields.vertex_fields(arrays, samples)
     scalars = np.asarray(vfields[spec.field], dtype=np.float64) * spec.scale
@@ -128,7 +129,7 @@ def build_plotter(source, color: str = "curvature-change", rest: bool = False, h
     shown = samples.rest_points if rest else samples.points
     all_points = [shown] + ([head_poly.points] if head_poly is not None else [])
     centre = head_poly.center if head_poly is not None else samples.points.mean(axis=0)
-    _camera(plotter, np.concatenate(all_points), np.asarray(centre), shown.mean(axis=0), fields.up_axis(arrays))
+    _camera(plotter, np.concatenate(all_points), np.asarray(centre), shown.mean(axis=0), up_axis(arrays))
     if not off_screen:
         _add_toggles(plotter, actors, contact_actors, fs(12))
     return plotter

@@ -1,87 +1,21 @@
-"""Fields of an inversion result, for display and export (VTP, USD, the viewer).
+"""Fields of an inversion result, for export (VTP, USD, Alembic) and display (the viewer).
 
-A result comes as an ``InversionResult``, an output directory of ``groom invert``, its
-``rest.npz`` or the dict of rest.npz arrays (:func:`groomtool.io.results.result_arrays`); everything
-here works on that dict, in SI units.  The strands are shown as the fitted Super-Helices sampled
-``per_element`` times per element; the rest shape is sampled at the same arc lengths, so the two
-polylines correspond vertex by vertex.  No pyvista import here.
+Everything here works on the dict of rest.npz arrays (:func:`groomtool.io.results.load_arrays` reads
+it from an ``InversionResult``, an output directory of ``groom invert`` or its ``rest.npz``), in SI
+units.  The strands are shown as the fitted Super-Helices sampled ``per_element`` times per element;
+the rest shape is sampled at the same arc lengths, so the two polylines correspond vertex by vertex.
+No pyvista import here.
 """
 
 from __future__ import annotations
 
-import zipfile
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
 from ..groom import GroomError
 from ..rods import superhelix as sh
-
-REQUIRED = ("strand_offsets", "element_lengths", "root_positions", "root_frames", "curvatures",
-            "rest_curvatures")
-
-
-# ------------------------------------------------------------------------------------- loading
-def load_arrays(source) -> dict:
-    """The rest.npz arrays of ``source`` (result object, directory, rest.npz path or dict)."""
-    if isinstance(source, dict):
-        arrays = source
-    elif hasattr(source, "helix") and hasattr(source, "rest_curvatures"):
-        from ..io.results import result_arrays
-
-        arrays = result_arrays(source)
-        arrays["source"] = np.array(str(source.groom.source))
-    else:
-        path = Path(source)
-        if path.is_dir():
-            path = path / "rest.npz"
-        if not path.is_file():
-            raise GroomError(f"{path}: no such file (give an output directory of 'groom invert' or its rest.npz)")
-        try:
-            with np.load(path, allow_pickle=False) as z:
-                arrays = {k: z[k] for k in z.files}
-        except (OSError, ValueError, zipfile.BadZipFile) as exc:
-            raise GroomError(f"{path}: not a readable rest.npz: {exc}") from exc
-        arrays["source"] = np.array(str(path))
-        from ..io.result_check import check_result_arrays
-
-        missing = [k for k in REQUIRED if k not in arrays]
-        if missing:
-            raise GroomError(f"{path}: lacks {', '.join(missing)}: not a groomtool result")
-        check_result_arrays(arrays, str(path))
-    missing = [k for k in REQUIRED if k not in arrays]
-    if missing:
-        raise GroomError(f"result arrays lack {', '.join(missing)}: not a groomtool result")
-    return arrays
-
-
-def up_axis(arrays: dict) -> str:
-    """"y" or "z": the axis opposite to gravity (rest.npz ``gravity``), "y" when unknown."""
-    g = np.asarray(arrays.get("gravity", np.zeros(3)), dtype=np.float64).reshape(-1)
-    if g.size != 3 or not np.any(g):
-        return "y"
-    return "z" if int(np.argmax(np.abs(g))) == 2 else "y"
-
-
-def helix(arrays: dict, rest: bool = False) -> sh.SuperHelix:
-    """The fitted Super-Helices (``rest=True``: with the rest curvatures), padded."""
-    offsets = np.asarray(arrays["strand_offsets"], dtype=np.int64)
-    counts = np.diff(offsets)
-    n_max = int(counts.max()) if len(counts) else 0
-    mask = np.arange(n_max)[None, :] < counts[:, None]
-    lengths = np.zeros(mask.shape)
-    lengths[mask] = arrays["element_lengths"]
-    q = np.zeros(mask.shape + (3,))
-    q[mask] = np.asarray(arrays["rest_curvatures" if rest else "curvatures"]).reshape(-1, 3)
-    return sh.SuperHelix(arrays["root_positions"], arrays["root_frames"], lengths, q, counts)
-
-
-def head_mesh(arrays: dict):
-    """(vertices (n, 3), faces (f, 3)) of the head stored in the result, or None."""
-    v = np.asarray(arrays.get("head_vertices", np.zeros((0, 3))), dtype=np.float64).reshape(-1, 3)
-    f = np.asarray(arrays.get("head_faces", np.zeros((0, 3))), dtype=np.int64).reshape(-1, 3)
-    return (v, f) if len(v) and len(f) else None
+from .results import result_helix
 
 
 # ------------------------------------------------------------------------------------- sampling
@@ -109,9 +43,9 @@ class Samples:
 
 def sample(arrays: dict, per_element: int = 8) -> Samples:
     """Sample the fitted and the rest helices ``per_element`` times per element (nodes included)."""
-    h = helix(arrays)
+    h = result_helix(arrays)
     points, offsets, strand, arc = sh.sample(h, per_element)
-    rest_points, _, _, _ = sh.sample(helix(arrays, rest=True), per_element)
+    rest_points, _, _, _ = sh.sample(result_helix(arrays, rest=True), per_element)
     local = np.arange(len(strand)) - offsets[strand]
     elem = np.minimum(local // per_element, np.maximum(h.n_elements[strand] - 1, 0))
     element = h.flat_offsets()[strand] + elem
@@ -270,7 +204,7 @@ def der_rest_geometry(arrays: dict, points: np.ndarray, offsets: np.ndarray, arc
 
     points = np.asarray(points, dtype=np.float64)
     offsets = np.asarray(offsets, dtype=np.int64)
-    fitted, rest = helix(arrays), helix(arrays, rest=True)
+    fitted, rest = result_helix(arrays), result_helix(arrays, rest=True)
     S = len(offsets) - 1
     counts = np.diff(offsets)
     if np.any(counts < 3):
