@@ -1,13 +1,15 @@
 """``groom batch INPUTS... --head MESH -o OUTDIR``: invert many grooms on Dask (docs/batch.md).
 
 Wiring (cli/main.py): ``batch_cmd.add_parser(sub, inv)`` after the invert parser ``inv`` is built (the
-batch takes every invert option from it, so both stay in step) and ``COMMANDS["batch"] = batch_cmd.cmd_batch``.
+batch takes every invert option from it, so both stay in step) and the ``COMMANDS`` entry "batch".
 """
 
 from __future__ import annotations
 
 import argparse
 import sys
+
+from .options import UserError, cli_message, invert_params
 
 EPILOG = """examples:
   groom batch styles/*.data --head head_model.obj --contacts all -o out          # LocalCluster, 2 workers
@@ -55,7 +57,6 @@ def add_parser(sub, invert_parser: argparse.ArgumentParser) -> argparse.Argument
 def cmd_batch(args) -> int:
     from ..batch import print_summary, run_batch
     from ..groom import UNIT_SCALE
-    from .main import UserError, _invert_params
 
     if args.workers < 1:
         raise UserError(f"--workers must be at least 1, got {args.workers}")
@@ -64,7 +65,7 @@ def cmd_batch(args) -> int:
     if args.contacts == "head" and args.head is None:
         raise UserError("--contacts head needs --head MESH")
     try:
-        params = _invert_params(args, UNIT_SCALE[args.units])
+        params = invert_params(args, UNIT_SCALE[args.units])
     except ValueError as exc:
         raise UserError(str(exc)) from exc
     memory_limit = args.memory_limit
@@ -83,9 +84,6 @@ def cmd_batch(args) -> int:
                         retries=args.retries, resume=args.resume, quiet=args.quiet)
     if not args.quiet:
         print_summary(summary)
-    from . import main as cli
-
-    wording = getattr(cli, "cli_message", lambda message: message)  # library advice -> the CLI's flags
-    for r in summary.failed():
-        print(f"groom batch: {r['name']}: {r['status']}: {wording(r['error'] or '')}", file=sys.stderr)
+    for r in summary.failed():  # library advice -> the CLI's flags
+        print(f"groom batch: {r['name']}: {r['status']}: {cli_message(r['error'] or '')}", file=sys.stderr)
     return summary.exit_code

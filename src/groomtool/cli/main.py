@@ -14,11 +14,8 @@ import sys
 import numpy as np
 
 from . import batch_cmd, export_cmd, simulate_cmd, view_cmd
-
-EXIT_OK, EXIT_USER_ERROR, EXIT_NOT_CONVERGED = 0, 1, 2
-EXIT_INTERNAL_ERROR = 3  # an unexpected exception: a bug, reported in one line (GROOM_DEBUG=1: traceback)
-DEFAULT_TOLERANCE_M = 5e-4  # the fit tolerance when --tolerance is not given, whatever --units says
-Q0_TOLERANCE = 1e-3  # --q0-tolerance default (= invert.Q0_TOLERANCE; docs/solvers.md section 11)
+from .options import (EXIT_INTERNAL_ERROR, EXIT_NOT_CONVERGED, EXIT_OK, EXIT_USER_ERROR, Q0_TOLERANCE, UserError,
+                      add_input_options, add_material_options, add_scale_option, cli_message, invert_params)
 
 
 class _Parser(argparse.ArgumentParser):
@@ -28,6 +25,7 @@ class _Parser(argparse.ArgumentParser):
         self.print_usage(sys.stderr)
         self.exit(EXIT_USER_ERROR, f"{self.prog}: error: {message}\n")
 
+
 EPILOG_INVERT = """examples:
   groom invert strands.obj --head head.obj -o out --contacts all
   groom invert harolongo.data --units cm --head head.obj --contacts head --snap-roots
@@ -36,38 +34,6 @@ EPILOG_INVERT = """examples:
 outputs (in OUTDIR, written as one atomic set): rest.npz, rest_shape.obj, fitted.obj, report.json
 exit codes: 0 ok, 1 user error, 2 solver did not converge (with --strict; nothing written)
 """
-
-
-def _add_input_options(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--units", choices=["m", "cm", "mm"], default="m",
-                   help="unit of the input coordinates (and of the head mesh); converted to metres (default m)")
-    p.add_argument("--up", choices=UP_CHOICES, default="y", metavar="{x,y,z,-x,-y,-z}",
-                   help="the up axis of the input, gravity points the other way (default y; write --up=-y or "
-                        "--up -y); nothing is rotated")
-    p.add_argument("--repair", action="store_true",
-                   help="drop duplicate consecutive points and strands of fewer than 2 points instead of failing")
-    p.add_argument("--strand-length", type=int, default=None, metavar="N",
-                   help="vertices per strand for OBJ files with vertices only (no 'l' records)")
-
-
-UP_CHOICES = ["x", "y", "z", "-x", "-y", "-z"]
-
-
-def _add_scale_option(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--scale", type=float, default=1.0, metavar="FACTOR",
-                   help="multiply the input coordinates (and the head) by FACTOR after --units, e.g. 0.357 for a "
-                        "groom reconstructed at 2.8x real size (default 1); tolerances stay in --units")
-
-
-def _add_material_options(p: argparse.ArgumentParser) -> None:
-    from ..material import Material
-
-    d = Material()
-    p.add_argument("--young", type=float, default=d.young_modulus, help=f"Young's modulus, Pa (default {d.young_modulus:g})")
-    p.add_argument("--shear", type=float, default=None, help="shear modulus, Pa (default Young / 3)")
-    p.add_argument("--radius", type=float, default=d.radius, help=f"fibre radius, m (default {d.radius:g})")
-    p.add_argument("--density", type=float, default=d.density, help=f"density, kg/m^3 (default {d.density:g})")
-    p.add_argument("--friction", type=float, default=d.friction, help=f"Coulomb friction coefficient (default {d.friction:g})")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -85,8 +51,8 @@ def build_parser() -> argparse.ArgumentParser:
                                    "'groomtool[alembic]')")
     inv.add_argument("--head", default=None, help="head mesh (.obj, .ply, .stl), same units as the input")
     inv.add_argument("-o", "--output", default="groom_out", help="output directory (default ./groom_out)")
-    _add_input_options(inv)
-    _add_scale_option(inv)
+    add_input_options(inv)
+    add_scale_option(inv)
     inv.add_argument("--tolerance", type=float, default=None,
                      help="max distance of the input points to the fitted helices, in --units (default 0.5 mm)")
     inv.add_argument("--relative-tolerance", type=float, default=None,
@@ -142,7 +108,7 @@ def build_parser() -> argparse.ArgumentParser:
                           "are named in the report")
     inv.add_argument("--format", action="append", choices=["npz", "obj", "json", "usd", "abc", "vtp", "hair"], default=None,
                      help="output formats (repeatable; default npz, obj, json)")
-    _add_material_options(inv)
+    add_material_options(inv)
     inv.add_argument("-q", "--quiet", action="store_true", help="no progress bars and no summary")
 
     ex = sub.add_parser("example", help="write the bundled example groom (example.obj) and head (head.obj)",
@@ -158,20 +124,13 @@ def build_parser() -> argparse.ArgumentParser:
                           formatter_class=argparse.RawDescriptionHelpFormatter)
     info.add_argument("input")
     info.add_argument("--head", default=None, help="head mesh (same units as the input): distance of the roots to it")
-    _add_input_options(info)
-    _add_scale_option(info)
+    add_input_options(info)
+    add_scale_option(info)
     simulate_cmd.add_parsers(sub)
     view_cmd.add_parser(sub)
     export_cmd.add_parser(sub)
     batch_cmd.add_parser(sub, inv)
     return parser
-
-
-def _material(args):
-    from ..material import Material
-
-    return Material(young_modulus=args.young, radius=args.radius, density=args.density,
-                    friction=args.friction, shear_modulus=args.shear)
 
 
 def _load_inputs(args):
@@ -265,7 +224,7 @@ def cmd_invert(args) -> int:
 
     check_target(args.output, inputs=(args.input, args.head))  # before any computation
     try:
-        _invert_params(args, 1.0)  # option values, before reading the inputs
+        invert_params(args, 1.0)  # option values, before reading the inputs
     except ValueError as exc:
         raise UserError(str(exc)) from exc
     groom, head, scale = _load_inputs(args)
@@ -280,7 +239,7 @@ def cmd_invert(args) -> int:
               f"root gaps{', --snap-roots' if args.snap_roots else ''} and stored with the result "
               "(add --contacts head to hold the strands on it)", file=sys.stderr)
     try:
-        params = _invert_params(args, scale)
+        params = invert_params(args, scale)
     except ValueError as exc:
         raise UserError(str(exc)) from exc
     if not args.quiet:  # a cold numba cache: compile first, say so once, so the bars measure the work
@@ -300,56 +259,6 @@ def cmd_invert(args) -> int:
     if not args.quiet:
         print(summary(result, written))
     return EXIT_OK
-
-
-MAX_ROD_SEGMENTS = 10_000  # per strand: beyond, the discrete rest data would not fit in memory
-
-
-def _check_invert_options(args) -> None:
-    """Option values the computation cannot take, as one-line user errors (before any work)."""
-    if args.contact_radius is not None and not (0 < args.contact_radius < np.inf):
-        raise UserError(f"--contact-radius must be a positive length, got {args.contact_radius:g}")
-    if args.relative_tolerance is not None and not (0 < args.relative_tolerance <= 1):
-        raise UserError(f"--relative-tolerance is a fraction of each strand's length: 0 < value <= 1, "
-                        f"got {args.relative_tolerance:g}")
-    if args.tolerance is not None and not (0 < args.tolerance < np.inf):
-        raise UserError(f"--tolerance must be a positive length, got {args.tolerance:g}")
-    if args.rod_segments is not None and not (2 <= args.rod_segments <= MAX_ROD_SEGMENTS):
-        raise UserError(f"--rod-segments must be 2 to {MAX_ROD_SEGMENTS:,} segments per strand, "
-                        f"got {args.rod_segments}")
-    if args.gamma is not None and not (0 <= args.gamma < np.inf):
-        raise UserError(f"--gamma must be >= 0 and finite, got {args.gamma:g}")
-    if not (0 <= args.q0_tolerance < np.inf):
-        raise UserError(f"--q0-tolerance must be >= 0 and finite (0: off), got {args.q0_tolerance:g}")
-    if args.wisp_radius is not None and not (0 < args.wisp_radius < np.inf):
-        raise UserError(f"--wisp-radius must be a positive length, got {args.wisp_radius:g}")
-    if args.wisp_radius is not None and args.contact_radius is not None:
-        raise UserError("--wisp-radius sets the contact radius: give one of --wisp-radius and --contact-radius")
-    if args.friction_margin is not None and not (0 <= args.friction_margin < 1):
-        raise UserError(f"--friction-margin must be in [0, 1), got {args.friction_margin:g}")
-    if args.stability_margin is not None and not (1 <= args.stability_margin < np.inf):
-        raise UserError(f"--stability-margin must be >= 1 and finite, got {args.stability_margin:g}")
-    if args.max_stiffness_factor is not None and not (1 <= args.max_stiffness_factor < np.inf):
-        raise UserError(f"--max-stiffness-factor must be >= 1 and finite, got {args.max_stiffness_factor:g}")
-
-
-def _invert_params(args, scale):
-    from ..invert import InversionParams
-
-    _check_invert_options(args)
-
-    return InversionParams(
-        material=_material(args), tolerance=DEFAULT_TOLERANCE_M if args.tolerance is None else args.tolerance * scale,
-        relative_tolerance=args.relative_tolerance, contacts=args.contacts,
-        contact_radius=None if args.contact_radius is None else args.contact_radius * scale,
-        wisp_radius=None if args.wisp_radius is None else args.wisp_radius * scale,
-        guess=args.guess, solver=args.solver, solver_tolerance=args.solver_tolerance, max_iterations=args.max_sweeps,
-        q0_tolerance=args.q0_tolerance or None, strict=args.strict,
-        snap_roots=args.snap_roots, rod_segments=args.rod_segments, stabilize=args.stabilize,
-        **({} if args.gamma is None else {"gamma": args.gamma}),
-        **({} if args.stability_margin is None else {"stability_margin": args.stability_margin}),
-        **({} if args.friction_margin is None else {"friction_margin": args.friction_margin}),
-        **({} if args.max_stiffness_factor is None else {"max_stiffness_factor": args.max_stiffness_factor}))
 
 
 def summary(result, written) -> str:
@@ -421,10 +330,6 @@ def root_notes(roots: dict) -> list[str]:
     return notes
 
 
-class UserError(Exception):
-    """A mistake in the command line or input: printed without a traceback, exit code 1."""
-
-
 def cmd_example(args) -> int:
     from ..examples import write_example
 
@@ -435,24 +340,11 @@ def cmd_example(args) -> int:
 
 COMMANDS = {"invert": cmd_invert, "info": cmd_info, "example": cmd_example,
             "view": view_cmd.cmd_view, "export": export_cmd.cmd_export,
-            "simulate": simulate_cmd.cmd_simulate, "check": simulate_cmd.cmd_check}
-COMMANDS["batch"] = batch_cmd.cmd_batch
+            "simulate": simulate_cmd.cmd_simulate, "check": simulate_cmd.cmd_check, "batch": batch_cmd.cmd_batch}
 
 
 def _one_line_warning(message, category, filename, lineno, file=None, line=None):
     print(f"groom: warning: {message}", file=sys.stderr if file is None else file)
-
-
-# library advice -> the command-line flag that does it
-CLI_WORDING = (("load with repair=True", "pass --repair"), ("pass strand_length=N", "pass --strand-length N"),
-               ("strand_length=", "--strand-length "), ("repair=True", "--repair"))
-
-
-def cli_message(message: str) -> str:
-    """A library error message with its keyword advice replaced by the CLI flags."""
-    for old, new in CLI_WORDING:
-        message = message.replace(old, new)
-    return message
 
 
 def _join_negative_up(argv: list) -> list:

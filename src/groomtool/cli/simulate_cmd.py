@@ -1,7 +1,7 @@
 """``groom simulate`` and ``groom check``: the forward simulator on the command line.
 
-Wiring (cli/main.py):  ``simulate_cmd.add_parsers(sub)`` and
-``COMMANDS.update(simulate=simulate_cmd.cmd_simulate, check=simulate_cmd.cmd_check)``.
+Wiring (cli/main.py): ``simulate_cmd.add_parsers(sub)`` and the ``COMMANDS`` entries "simulate" and
+"check".  Options shared with the other commands come from cli/options.py.
 """
 
 from __future__ import annotations
@@ -12,6 +12,8 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
+
+from .options import DEFAULT_TOLERANCE_M, add_input_options, add_material_options, material_from_args
 
 EPILOG_SIMULATE = """examples:
   groom simulate out                      # an output directory of 'groom invert': its rest curvatures
@@ -49,8 +51,6 @@ def _add_simulation_options(p: argparse.ArgumentParser) -> None:
 
 def add_parsers(subparsers) -> None:
     """Add ``simulate`` and ``check`` to the ``groom`` sub-command parsers."""
-    from .main import _add_input_options, _add_material_options
-
     sim = subparsers.add_parser("simulate", help="simulate a groom under gravity and frictional contact",
                                 epilog=EPILOG_SIMULATE, formatter_class=argparse.RawDescriptionHelpFormatter)
     sim.add_argument("input", help="an output directory of 'groom invert' (or its rest.npz), or a groom file")
@@ -62,8 +62,8 @@ def add_parsers(subparsers) -> None:
     sim.add_argument("--tolerance", type=float, default=None,
                      help="fit tolerance for a groom file, in --units (default 0.5 mm)")
     _add_simulation_options(sim)
-    _add_input_options(sim)
-    _add_material_options(sim)
+    add_input_options(sim)
+    add_material_options(sim)
 
     chk = subparsers.add_parser("check", help="simulate an inverted groom and its naive set-up; write check.json",
                                 epilog=EPILOG_CHECK, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -131,13 +131,10 @@ def load_simulation_input(args):
     if path.is_dir():
         raise GroomError(f"{path}: a directory without rest.npz: give an output directory of 'groom invert'")
     from ..fit import fit_groom
-    from .main import _material
 
     groom = load_groom(path, units=args.units, up=args.up, repair=args.repair, strand_length=args.strand_length)
     head = load_head(args.head, units=args.units) if args.head else None
-    material = _material(args)
-    from .main import DEFAULT_TOLERANCE_M
-
+    material = material_from_args(args)
     tolerance = DEFAULT_TOLERANCE_M if args.tolerance is None else args.tolerance * UNIT_SCALE[args.units]
     fit = fit_groom(groom, tolerance=tolerance, progress=not args.quiet)
     mode = args.contacts or "all"
