@@ -3,8 +3,7 @@
 from .groom import Groom, GroomError
 from .material import Material
 from .api import export, inversion_params, invert, load, load_head  # noqa: E402  (after the data classes)
-
-__version__ = "0.1.0"
+from .version import __version__
 
 __all__ = ["Groom", "GroomError", "Material", "__version__", "export", "inversion_params", "invert", "load",
            "load_head"]

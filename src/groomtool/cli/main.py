@@ -13,6 +13,7 @@ import sys
 
 import numpy as np
 
+from ..version import __version__
 from . import batch_cmd, export_cmd, simulate_cmd, view_cmd
 from .options import (EXIT_INTERNAL_ERROR, EXIT_NOT_CONVERGED, EXIT_OK, EXIT_USER_ERROR, Q0_TOLERANCE, UserError,
                       add_input_options, add_material_options, add_scale_option, cli_message, invert_params)
@@ -39,8 +40,6 @@ exit codes: 0 ok, 1 user error, 2 solver did not converge (with --strict; nothin
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(
         prog="groom", description="Hair grooming and inversion: rest curvatures that make a groom an equilibrium.")
-    from .. import __version__
-
     parser.add_argument("--version", action="version", version=f"groom (groomtool) {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
 

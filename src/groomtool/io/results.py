@@ -27,6 +27,7 @@ from ..groom import Groom, GroomError
 from ..material import Material
 from ..rods import superhelix as sh
 from .atomic import atomic_open
+from .obj import write_obj
 from .outset import output_set
 from .result_check import check_result_arrays, read_report
 
@@ -118,8 +119,6 @@ def write_result(result, outdir, formats=("npz", "obj", "json"), extra=None) -> 
     ``extra(directory) -> [paths]`` writes more files into the set (``groom invert --format usd``).
     A failure (full disk, interrupt) leaves ``outdir`` as it was; OSError becomes GroomError.
     """
-    from . import save_groom
-
     try:
         with output_set(outdir) as stage:
             written = []
@@ -129,7 +128,7 @@ def write_result(result, outdir, formats=("npz", "obj", "json"), extra=None) -> 
             if "obj" in formats:
                 for name, (pts, offsets) in (("rest_shape.obj", result.rest_shape()),
                                              ("fitted.obj", result.fitted_shape())):
-                    save_groom(Groom(pts, offsets, up=result.groom.up, source=name), stage / name)
+                    write_obj(Groom(pts, offsets, up=result.groom.up, source=name), stage / name)
                     written.append(name)
             if "json" in formats:
                 write_json(stage / "report.json", result.report)

@@ -29,6 +29,7 @@ from pxr import Gf, Sdf, Usd, UsdGeom, UsdPhysics, UsdUtils, Vt
 
 from ..groom import Groom, GroomError
 from ..rods import superhelix as sh
+from ..version import __version__
 from . import fields
 from .atomic import atomic_path
 from .results import head_mesh, load_arrays, result_helix
@@ -83,8 +84,6 @@ def write_usd(source, path, per_element: int = 8, head=None) -> Path:
 
 def build_stage(arrays: dict, per_element: int = 8, head=None) -> Usd.Stage:
     """The in-memory stage that :func:`write_usd` saves."""
-    from .. import __version__
-
     stage = Usd.Stage.CreateInMemory()
     UsdGeom.SetStageMetersPerUnit(stage, 1.0)
     up = _signed_up(arrays)
