@@ -102,6 +102,13 @@ def run_export(argv):
     return args.func(args)
 
 
+def test_export_command_formats_are_the_writers():
+    from groomtool.cli import export_cmd
+    from groomtool.io import export as io_export
+
+    assert export_cmd.FORMATS == io_export.FORMATS
+
+
 def test_export_command_default_names(outdir, capsys):
     pytest.importorskip("pxr")
     pytest.importorskip("pyvista")

@@ -25,7 +25,6 @@ from .rods import superhelix as sh
 
 MATERIAL_FIELDS = tuple(f.name for f in dataclasses.fields(Material))
 PARAM_FIELDS = tuple(f.name for f in dataclasses.fields(InversionParams) if f.name != "material")
-EXPORT_SUFFIXES = (".usd", ".usda", ".usdc", ".usdz", ".vtp", ".obj", ".hair", ".data")
 
 
 def load(path, units="m", up: str = "y", repair: bool = False, strand_length=None) -> Groom:
@@ -85,30 +84,9 @@ def export(result, path, shape: str = "rest", per_element: int = 8) -> Path:
     (``shape`` "fitted" or "rest"); .obj/.hair/.data: the ``shape`` polylines ("rest" or "fitted"),
     sampled ``per_element`` times per helix element.  Returns the path.
     """
-    from .groom import GroomError
+    from .io.export import export_path
 
-    path = Path(path)
-    suffix = path.suffix.lower()
-    if suffix not in EXPORT_SUFFIXES:
-        raise GroomError(f"{path}: cannot export {suffix!r}; use one of {', '.join(EXPORT_SUFFIXES)}")
-    if shape not in ("rest", "fitted"):
-        raise GroomError(f"shape must be 'rest' or 'fitted', got {shape!r}")
-    if suffix.startswith(".usd"):
-        from .io.usd import write_usd
-
-        return write_usd(result, path, per_element=per_element)
-    if suffix == ".vtp":
-        from .io.vtp import write_vtp
-
-        return write_vtp(result, path, per_element=per_element, shape=shape)
-    from .io import fields, save_groom
-    from .io.results import load_arrays, up_axis
-
-    arrays = load_arrays(result)
-    samples = fields.sample(arrays, per_element)
-    points = samples.rest_points if shape == "rest" else samples.points
-    groom = Groom(points, samples.offsets, up=up_axis(arrays), source=f"{shape} shape")
-    return save_groom(groom, path)
+    return export_path(result, path, shape=shape, per_element=per_element)
 
 
 def simulate(result, seconds: float = 1.0, **options):

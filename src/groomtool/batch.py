@@ -190,7 +190,7 @@ def _write(result, target: Path, formats) -> None:
 
     extra = [f for f in formats if f in ("usd", "vtp", "hair")]
     if extra:
-        from .cli.export_cmd import export_formats
+        from .io.export import export_formats
 
         def write_extra(stage):
             return export_formats(result, stage, extra)

@@ -219,6 +219,7 @@ def args_units(units: str, scale: float) -> str:
 def cmd_invert(args) -> int:
     from ..invert import SolverFailure, invert_groom
     from ..io.outset import check_target
+    from ..io.export import export_formats
     from ..io.results import write_result
 
     check_target(args.output, inputs=(args.input, args.head))  # before any computation
@@ -254,7 +255,7 @@ def cmd_invert(args) -> int:
     formats = tuple(args.format) if args.format else ("npz", "obj", "json")
     extra = [f for f in formats if f in ("usd", "abc", "vtp", "hair")]
     written = write_result(result, args.output, formats=formats,
-                           extra=(lambda stage: export_cmd.export_formats(result, stage, extra)) if extra else None)
+                           extra=(lambda stage: export_formats(result, stage, extra)) if extra else None)
     if not args.quiet:
         print(summary(result, written))
     return EXIT_OK
