@@ -8,8 +8,8 @@ random strands of digital-salon/harolongo.data (21 vertices, cm -> m).
 
 Per strand, at ``--tolerance`` (m, max distance vertex -> fitted curve):
 - production: ``groomtool.fit.fit_groom`` (floating tangents, adaptive N; its own error measure);
-- helix-LS and clothoid-LS: the smallest N found by ``clothoid.min_elements_ls`` (doubling/halving from the
-  production N, then bisection) for which ``clothoid.fit_polyline_ls`` -- the same least-squares procedure for
+- helix-LS and clothoid-LS: the smallest N found by ``fit.least_squares.min_elements_ls`` (doubling/halving from the
+  production N, then bisection) for which ``fit.least_squares.fit_polyline_ls`` -- the same least-squares procedure for
   both models -- reaches the tolerance, its error measured as the distance to the curve sampled 32 times
   per element; plus the largest jump of the bending curvature (kappa1, kappa2) at the helix's joints.
 
@@ -38,7 +38,7 @@ import numpy as np  # noqa: E402
 from groomtool.fit import fit_groom  # noqa: E402
 from groomtool.groom import Groom  # noqa: E402
 from groomtool.io import read_data  # noqa: E402
-from groomtool.rods import clothoid as cl  # noqa: E402
+from groomtool.fit import least_squares as ls  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data" / "usc" / "cstrands"
@@ -115,7 +115,7 @@ def main() -> None:
                              "cpu_s": time.process_time() - t0}
         for model in ("helix", "clothoid"):
             t0 = time.process_time()
-            n, fit, fits = cl.min_elements_ls(X, tol, model, start=int(prod.n_elements[0]))
+            n, fit, fits = ls.min_elements_ls(X, tol, model, start=int(prod.n_elements[0]))
             rec = {"n": n, "max_error_m": fit.max_error, "mean_error_m": fit.mean_error, "fits": fits,
                    "cpu_s": time.process_time() - t0}
             if model == "helix":
@@ -138,7 +138,7 @@ def write_report(meta, rows) -> None:
              f"{meta.get('args', {})}.", "",
              "Production: fit_groom (floating tangents; starts at ceil(L / 2 cm) elements and only grows, so its N is "
              "not minimal). helix-LS, clothoid-LS: the smallest N found for the same least-squares prototype fit "
-             "(clothoid.fit_polyline_ls; a local optimiser with an iteration cap: see docs/clothoid.md).", "",
+             "(fit.least_squares.fit_polyline_ls; a local optimiser with an iteration cap: see docs/clothoid.md).", "",
              "| style | kind | strand | L (m) | turning (rad/m) | production helix N (err mm) | helix-LS N (err mm) | "
              "clothoid-LS N (err mm) | clothoid / helix-LS | helix-LS max bending jump (1/m) | CPU s: helix-LS / clothoid-LS |",
              "|---|---|---|---|---|---|---|---|---|---|---|"]

@@ -14,6 +14,7 @@ from hypothesis import strategies as st
 from scipy.integrate import solve_ivp
 from scipy.spatial.transform import Rotation
 
+from groomtool.fit import least_squares as ls
 from groomtool.rods import clothoid as cl
 from groomtool.rods import superhelix as sh
 
@@ -333,12 +334,12 @@ def test_fit_prototype_recovers_a_sampled_clothoid_and_beats_the_helix_on_it():
     q = np.array([[1.0, 5, -3], [0, 25, 10], [-2, -15, 30], [1, 5, -20]])
     c = cl.SuperClothoid(np.zeros(3), np.eye(3), [[0.05, 0.05, 0.05]], q[None])
     X = cl.evaluate_positions(c, np.zeros(151, dtype=np.int64), np.linspace(0, 0.15, 151))
-    fit = cl.fit_polyline_ls(X, 3, "clothoid", iterations=60)
+    fit = ls.fit_polyline_ls(X, 3, "clothoid", iterations=60)
     assert fit.max_error < 5e-5
     assert abs(fit.rod.strand_lengths[0] - 0.15) < 1e-4
     pts = cl.sample(fit.rod, 32)[0]
-    assert np.allclose(cl.polyline_distances(X, pts).max(), fit.max_error)
-    helix = cl.fit_polyline_ls(X, 3, "helix", iterations=60)
+    assert np.allclose(ls.polyline_distances(X, pts).max(), fit.max_error)
+    helix = ls.fit_polyline_ls(X, 3, "helix", iterations=60)
     assert helix.max_error > 10 * fit.max_error
 
 
@@ -349,8 +350,8 @@ def test_polyline_distances_brute_force():
     t = np.linspace(0, 1, 2001)
     dense = (curve[:-1, None] + t[None, :, None] * (curve[1:] - curve[:-1])[:, None]).reshape(-1, 3)
     ref = np.sqrt(((pts[:, None] - dense[None]) ** 2).sum(-1)).min(axis=1)
-    assert np.allclose(cl.polyline_distances(pts, curve), ref, atol=2e-3)
-    assert (cl.polyline_distances(pts, curve) <= ref + 1e-12).all()
+    assert np.allclose(ls.polyline_distances(pts, curve), ref, atol=2e-3)
+    assert (ls.polyline_distances(pts, curve) <= ref + 1e-12).all()
 
 
 def test_isolated_inversion_solves_the_equilibrium():
