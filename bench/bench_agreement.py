@@ -4,11 +4,11 @@ Issue goal: "GS and clarabel objectives within 1e-6 relative on every USC style 
 of ../shared/data/usc/cstrands (343 styles of 5 guide strands, metres, y up) and the USC head mesh, the
 inverse contact problem of ``groom invert --contacts all`` is built ONCE with the pipeline's own functions
 (groomtool.invert: fit_groom -> kinematics, sample -> detect_contacts(head, strand_strand) ->
-contact_jacobian -> gravity_force -> build_inverse_problem, the ContactProblem of invert._solve) and solved
+contact_jacobian -> gravity_force -> build_inverse_problem, the ContactProblem of inverse_problem.solve_inverse_problem) and solved
 with both solvers (solve_contact_problem, method "clarabel" and "gs", tol 1e-8, max_iter 5000, as
-invert._solve does).  Reported per style and solver: status, iterations, the solvers' common residual
+inverse_problem.solve_inverse_problem does).  Reported per style and solver: status, iterations, the solvers' common residual
 (residual.py), wall time (SolveResult.time_s, set-up included; best of --repeat runs, after a numba
-warm-up), the cone violation (invert.cone_violation, newtons) and two objective differences:
+warm-up), the cone violation (inverse_problem.cone_violation, newtons) and two objective differences:
 
 * ``rel_phys``    |f_gs - f_cl| / max(|f_cl|, tiny), f = InverseProblem.objective(r) in physical units
                   (the issue's criterion).  f = w f^2 J + 1/2 ||d||^2 where J is the SOCQP objective in
@@ -50,7 +50,8 @@ from groomtool.contact import DEFAULT_CONTACT_RADIUS, detect_contacts  # noqa: E
 from groomtool.contact.head import as_head_surface  # noqa: E402
 from groomtool.contact.jacobian import contact_jacobian  # noqa: E402
 from groomtool.fit import fit_groom  # noqa: E402
-from groomtool.invert import InversionParams, build_inverse_problem, cone_violation  # noqa: E402
+from groomtool.inverse_problem import build_inverse_problem, cone_violation  # noqa: E402
+from groomtool.invert import InversionParams  # noqa: E402
 from groomtool.io import load_head, read_data  # noqa: E402
 from groomtool.rods import superhelix as sh  # noqa: E402
 from groomtool.solvers import solve_contact_problem  # noqa: E402
@@ -71,7 +72,7 @@ SOLVERS = ("clarabel", "gs")
 # ----------------------------------------------------------------------------------------------
 def build(path: Path, head, radius: float, params: InversionParams):
     """The inverse problem of ``invert_groom`` with contacts="all": (helix, contacts, InverseProblem,
-    ContactProblem, build seconds).  ContactProblem as in invert._solve."""
+    ContactProblem, build seconds).  ContactProblem as in inverse_problem.solve_inverse_problem."""
     material = params.material
     groom = read_data(path, repair=True)  # cstrands00356 needs the repair (a duplicated vertex)
     gravity = groom.gravity(material.gravity)
@@ -129,7 +130,7 @@ def rel_contact(j_gs: float, j_cl: float, scale: float) -> float:
 
 
 def tight_clarabel(problem, cp, gs_row: dict, tol: float) -> dict:
-    """clarabel at its own tolerance ``tol`` (its gap / feasibility tolerances; invert._solve leaves its
+    """clarabel at its own tolerance ``tol`` (its gap / feasibility tolerances; inverse_problem.solve_inverse_problem leaves its
     default 1e-9): does the difference to GS shrink with clarabel's residual?"""
     t0 = time.perf_counter()
     out = solve_factored(cp, tol=tol, max_iter=400)
@@ -280,7 +281,7 @@ def markdown(meta: dict, series: list[dict]) -> str:
         "",
         f"Problem: `groom invert --contacts all` with the USC head, built once per style with the pipeline's "
         f"functions (fit tolerance {meta['tolerance_m'] * 1e3:.1f} mm, gamma {meta['gamma']}, guess "
-        f"{meta['guess']}, friction {meta['friction']}); both solvers on the same ContactProblem as invert._solve "
+        f"{meta['guess']}, friction {meta['friction']}); both solvers on the same ContactProblem as inverse_problem.solve_inverse_problem "
         f"(tol {meta['solver_tolerance']:.0e}, max_iter {meta['max_iterations']}). \"clarabel\" is its own interior "
         "point (`polish=False`, default tolerance 1e-9), independent of GS; \"clarabel + polish\" is what the "
         "inversion uses (Gauss-Seidel sweeps from clarabel's optimum until the residual meets tol). "
@@ -296,7 +297,7 @@ def markdown(meta: dict, series: list[dict]) -> str:
         "* **force diff**: max_i ||r_gs,i - r_cl,i|| / max(max_i ||r_cl,i||, max_i rho_i ||b_i||) (solver units); "
         "active contacts: r_N > 1e-6 max_i rho_i ||b_i||;",
         "* **residual**: residual.py (max-norm natural map, relative), the measure GS stops on; cone violation in "
-        "newtons (invert.cone_violation).",
+        "newtons (inverse_problem.cone_violation).",
         "",
         "## Summary",
         "",

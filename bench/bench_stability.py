@@ -56,7 +56,7 @@ def hair_classes() -> dict:
 def tip_drift(result, stiffness_factor, rest, seconds, dt, kick=0.0, seed=0) -> float:
     """Max tip drift (m) over ``seconds`` of simulation from the groomed shape with rest curvatures ``rest``
     and per-strand stiffness factors; ``kick``: random initial rates (1/(m s)) to perturb it."""
-    from groomtool.invert import strand_stiffness
+    from groomtool.inverse_problem import strand_stiffness
     from groomtool.simulate import SimulationParams, Simulator
 
     helix = result.helix

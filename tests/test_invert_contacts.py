@@ -13,7 +13,8 @@ import trimesh
 
 from groomtool import Groom, Material
 from groomtool.contact.jacobian import contact_jacobian
-from groomtool.invert import InversionParams, invert_groom, isolated_rest_curvatures, rest_curvature_guess
+from groomtool.invert import InversionParams, invert_groom
+from groomtool.inverse_problem import isolated_rest_curvatures, rest_curvature_guess
 from groomtool.rods import superhelix as sh
 
 MAT = Material()
@@ -212,7 +213,7 @@ def test_redundant_strand_fraction_counts_rows_against_dofs():
 
 
 def test_auto_solver_rule():
-    from groomtool.invert import AUTO_CLARABEL_MAX_CONTACTS, choose_solver
+    from groomtool.solver_choice import AUTO_CLARABEL_MAX_CONTACTS, choose_solver
 
     assert choose_solver("auto", 500, 0.0) == "gs"
     assert choose_solver("auto", 500, 1.0) == "clarabel"
@@ -254,7 +255,7 @@ def test_gauss_seidel_gives_up_early_on_dense_contacts_and_says_what_to_do(drape
     from groomtool.invert import SolverFailure
 
     groom, _ = draped
-    monkeypatch.setattr(sys.modules["groomtool.invert"], "GS_GIVE_UP", 0.05)
+    monkeypatch.setattr(sys.modules["groomtool.inverse_problem"], "GS_GIVE_UP", 0.05)
     with pytest.raises(SolverFailure) as info:
         invert_groom(groom, head=sphere, params=_params(solver="gs", max_iterations=1600, strict=True))
     exc = info.value
@@ -313,7 +314,7 @@ def test_failure_message_of_a_diverged_solve_has_no_tolerance_advice():
 def test_check_stages_equal_their_original_implementations(draped):
     """The equilibrium check, the isolated and the contact-held stiffness ratios against the original
     dense routes, on strands touching the sphere and each other."""
-    from groomtool.invert import equilibrium_residuals
+    from groomtool.inverse_problem import equilibrium_residuals
     from groomtool.stability import stiffness_ratios
     from reference.equilibrium import equilibrium_residuals_reference, stiffness_ratios_reference
 

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from groomtool.invert import equilibrium_residuals, isolated_rest_curvatures, rest_curvature_guess
+from groomtool.inverse_problem import equilibrium_residuals, isolated_rest_curvatures, rest_curvature_guess
 from groomtool.material import Material
 from groomtool.rods import superhelix as sh
 from groomtool.stability import constrained_top_eigenvalue, stiffness_ratios

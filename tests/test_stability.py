@@ -17,7 +17,7 @@ from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 from groomtool import stability
-from groomtool.invert import equilibrium_residuals
+from groomtool.inverse_problem import equilibrium_residuals
 from groomtool.material import Material
 from groomtool.rods import superhelix as sh
 from groomtool.stability import stiffness_ratios

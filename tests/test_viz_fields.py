@@ -11,7 +11,8 @@ import trimesh
 
 from groomtool.contact.detect import Contacts
 from groomtool.groom import Groom
-from groomtool.invert import InversionParams, InversionResult, isolated_rest_curvatures
+from groomtool.inverse_problem import isolated_rest_curvatures
+from groomtool.invert import InversionParams, InversionResult
 from groomtool.material import Material
 from groomtool.rods import superhelix as sh
 from groomtool.stability import stiffness_ratios

@@ -6,7 +6,7 @@
 
 Keys: Hd, Hi, Hp, Hs (H in CSR parts), inv_k (K^-1 per dof), w_scale, gamma (relative), b (solver units),
 mu, offsets (dof offsets per strand), strand_a, strand_b; stage CPU seconds are printed.
-The ContactProblem is ContactProblem(H, inv_k**2 / w_scale, offsets, gamma, b, mu) (as invert._solve).
+The ContactProblem is ContactProblem(H, inv_k**2 / w_scale, offsets, gamma, b, mu) (as inverse_problem.solve_inverse_problem).
 """
 
 from __future__ import annotations
@@ -26,7 +26,8 @@ from groomtool.contact import detect_contacts  # noqa: E402
 from groomtool.contact.head import snap_roots  # noqa: E402
 from groomtool.contact.jacobian import contact_jacobian  # noqa: E402
 from groomtool.fit import fit_groom  # noqa: E402
-from groomtool.invert import InversionParams, _snap_groom_roots, build_inverse_problem  # noqa: E402
+from groomtool.inverse_problem import build_inverse_problem  # noqa: E402
+from groomtool.invert import InversionParams, _snap_groom_roots  # noqa: E402
 from groomtool.io import load_groom, load_head  # noqa: E402
 from groomtool.rods import superhelix as sh  # noqa: E402
 

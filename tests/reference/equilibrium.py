@@ -1,7 +1,7 @@
 """References for groomtool.invert and groomtool.stability: the original dense routes that the
 chunked, compiled ones replaced, for the tests that compare them (to round-off).
 
-* :func:`equilibrium_residuals_reference`: :func:`groomtool.invert.equilibrium_residuals` as it was
+* :func:`equilibrium_residuals_reference`: :func:`groomtool.inverse_problem.equilibrium_residuals` as it was
   (kinematics twice, the second time padded to the longest strand), with the dense point-Jacobian
   H^T r of contact.jacobian's reference.
 * :func:`stiffness_ratios_reference`: :func:`groomtool.stability.stiffness_ratios` by batched
@@ -14,7 +14,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from groomtool.contact.jacobian import _generalized_contact_force_reference
-from groomtool.invert import gravity_force
+from groomtool.inverse_problem import gravity_force
 from groomtool.material import Material
 from groomtool.rods import superhelix as sh
 

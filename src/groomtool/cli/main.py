@@ -13,9 +13,10 @@ import sys
 
 import numpy as np
 
+from ..solver_choice import Q0_TOLERANCE  # --q0-tolerance default (docs/solvers.md section 11)
 from ..version import __version__
 from . import batch_cmd, export_cmd, simulate_cmd, view_cmd
-from .options import (EXIT_INTERNAL_ERROR, EXIT_NOT_CONVERGED, EXIT_OK, EXIT_USER_ERROR, Q0_TOLERANCE, UserError,
+from .options import (EXIT_INTERNAL_ERROR, EXIT_NOT_CONVERGED, EXIT_OK, EXIT_USER_ERROR, UserError,
                       add_input_options, add_material_options, add_scale_option, cli_message, invert_params)
 
 

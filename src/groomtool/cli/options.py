@@ -15,7 +15,6 @@ from ..material import Material
 EXIT_OK, EXIT_USER_ERROR, EXIT_NOT_CONVERGED = 0, 1, 2
 EXIT_INTERNAL_ERROR = 3  # an unexpected exception: a bug, reported in one line (GROOM_DEBUG=1: traceback)
 DEFAULT_TOLERANCE_M = 5e-4  # the fit tolerance when --tolerance is not given, whatever --units says
-Q0_TOLERANCE = 1e-3  # --q0-tolerance default (= invert.Q0_TOLERANCE; docs/solvers.md section 11)
 UP_CHOICES = ["x", "y", "z", "-x", "-y", "-z"]
 MAX_ROD_SEGMENTS = 10_000  # per strand: beyond, the discrete rest data would not fit in memory
 

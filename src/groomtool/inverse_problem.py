@@ -1,0 +1,310 @@
+"""The inverse problem: rest curvatures q0 that make the groomed shape an equilibrium (MATH.md section 6).
+
+Isolated strands:   K (q - q0) = F(q)                 =>  q0 = q - K^-1 F(q)
+With contacts:      K (q - q0) = F(q) + H^T r, r_i in K_mu (Coulomb cones), under-determined; take
+
+    min_r 1/2 || q - K^-1 (H^T r + F) - q0_guess ||^2 + gamma_abs ||r||^2,   r_i in K_mu
+    q0 = q - K^-1 (F + H^T r)
+
+a second-order-cone QP  min 1/2 r^T W r + b^T r  with W = H K^-2 H^T + 2 gamma_abs I,
+b = -H K^-1 d, d = q - K^-1 F - q0_guess.  ``gamma`` is given relative to the mean diagonal of
+H K^-2 H^T (gamma_abs = gamma * mean diag), so it is dimensionless.
+
+Here: K, F and q0 of isolated strands, the scaled SOCQP (:class:`InverseProblem`), its solve with the
+solver that solver_choice.py picks (:func:`solve_inverse_problem`), q0 from the forces, the
+certified distance of q0 to the optimum's and the equilibrium check.  The whole job (fit, contacts,
+stabilisation, report) is invert.py's.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+from numba import njit
+
+from .material import Material
+from .rods import superhelix as sh
+from .solver_choice import AUTO_CLARABEL_MAX_CONTACTS, GS_GIVE_UP, choose_solver
+from .timing import progress
+
+
+def strand_stiffness(helix: sh.SuperHelix, material: Material, stiffness_factor=None) -> np.ndarray:
+    """K (S, N, 3): K_j = f_s l_j (GJ, EI, EI), f_s the strand's stiffness factor (None: all 1), 0 on padding."""
+    K = sh.stiffness(helix, material.stiffness_diag)
+    if stiffness_factor is not None:
+        K = K * np.asarray(stiffness_factor, dtype=np.float64).reshape(-1, 1, 1)
+    return K
+
+
+def isolated_rest_curvatures(helix: sh.SuperHelix, material: Material, gravity, kin=None,
+                             stiffness_factor=None) -> np.ndarray:
+    """q0 = q - K^-1 F(q), (S, N, 3); padding stays 0."""
+    F = gravity_force(helix, material, gravity, kin)
+    K = strand_stiffness(helix, material, stiffness_factor)
+    q0 = helix.curvatures - np.divide(F, K, out=np.zeros_like(F), where=K > 0)
+    return q0
+
+
+def gravity_force(helix: sh.SuperHelix, material: Material, gravity, kin=None) -> np.ndarray:
+    """F(q) (S, N, 3): with ``kin`` given, from it; else in chunks of strands of similar length."""
+    if kin is not None:
+        return sh.gravity_force(helix, material.linear_density, gravity, kin)
+    return sh.map_strand_chunks(helix, lambda sub: sh.gravity_force(sub, material.linear_density, gravity))
+
+
+def rest_curvature_guess(helix: sh.SuperHelix, guess: str) -> np.ndarray:
+    """q0_guess: ``current`` = q (keep the least elastic energy: contacts carry what they can);
+    ``tip`` = the curvature of each strand's last element everywhere (the tip carries no load,
+    so its shape is its natural shape; the lecture's q0 = q(L), for uniformly curled hair)."""
+    if guess == "current":
+        return helix.curvatures.copy()
+    last = np.maximum(helix.n_elements - 1, 0)
+    tip = helix.curvatures[np.arange(helix.n_strands), last]
+    return np.where(helix.element_mask[..., None], tip[:, None, :], 0.0)
+
+
+def equilibrium_residuals(helix: sh.SuperHelix, rest_curvatures, material: Material, gravity,
+                          contacts=None, forces=None, chunk: int = 1024, stiffness_factor=None) -> np.ndarray:
+    """||K (q - q0) - F - H^T r|| / ||F|| per strand (K with the per-strand ``stiffness_factor``), recomputed
+    from scratch (fresh kinematics, H^T r point by point), independent of how q0 was obtained.  In chunks of
+    strands of similar length, each chunk's kinematics serving both F and H^T r."""
+    from .contact.jacobian import _point_forces_generalized  # contact (0.3 s): kept off the CLI's start
+
+    S = helix.n_strands
+    F = np.zeros(helix.curvatures.shape)
+    HtR = None
+    if contacts is not None and forces is not None and len(forces):
+        # the point forces: F_i^T r_i at s_a on strand a, its opposite at s_b on strand b
+        frames = np.asarray(contacts.frame, dtype=np.float64).reshape(-1, 3, 3)
+        world = np.einsum("pji,pj->pi", frames, np.asarray(forces, dtype=np.float64).reshape(-1, 3))
+        strand = np.concatenate([np.asarray(contacts.strand_a, dtype=np.int64),
+                                 np.asarray(contacts.strand_b, dtype=np.int64)])
+        arc = np.concatenate([np.asarray(contacts.s_a, dtype=np.float64),
+                              np.asarray(contacts.s_b, dtype=np.float64)])
+        keep = strand >= 0
+        strand, arc, point_force = strand[keep], arc[keep], np.concatenate([world, -world])[keep]
+        HtR = np.zeros(helix.curvatures.shape)
+    order = np.argsort(helix.n_elements, kind="stable")
+    which_chunk = np.empty(S, dtype=np.int64)
+    local = np.empty(S, dtype=np.int64)
+    for c, start in enumerate(range(0, S, chunk)):
+        which_chunk[order[start:start + chunk]] = c
+        local[order[start:start + chunk]] = np.arange(len(order[start:start + chunk]))
+    if HtR is not None:
+        by_chunk = np.argsort(which_chunk[strand], kind="stable")
+        bounds = np.searchsorted(which_chunk[strand][by_chunk], np.arange((S + chunk - 1) // chunk + 1))
+    for c, start in enumerate(range(0, S, chunk)):
+        ids = order[start:start + chunk]
+        sub = helix.subset(ids)
+        kin = sh.kinematics(sub)
+        n = sub.max_elements
+        F[ids, :n] = sh.gravity_force(sub, material.linear_density, gravity, kin)
+        if HtR is not None:
+            mine = by_chunk[bounds[c]:bounds[c + 1]]
+            HtR[ids, :n] = _point_forces_generalized(sub, kin, local[strand[mine]], arc[mine], point_force[mine])
+    K = strand_stiffness(helix, material, stiffness_factor)
+    res = K * (helix.curvatures - rest_curvatures) - F
+    if HtR is not None:
+        res -= HtR
+    num = np.linalg.norm(res.reshape(S, -1), axis=1)
+    den = np.linalg.norm(F.reshape(S, -1), axis=1)
+    return num / np.maximum(den, np.finfo(float).tiny)
+
+
+@dataclass
+class InverseProblem:
+    """The inverse SOCQP in solver units: W~ = H (K^-2 / w_scale) H^T + 2 gamma I, b~ = b / (w_scale f_scale),
+    r = f_scale r~.  ``H`` and ``inv_stiffness`` (flat K^-1) are kept to map r back to q0."""
+
+    H: object
+    inv_stiffness: np.ndarray
+    d: np.ndarray
+    gamma: float
+    w_scale: float
+    f_scale: float
+    b: np.ndarray
+    mu: np.ndarray
+    q0_free: np.ndarray | None = None  # flat q - K^-1 F: q0 = q0_free - K^-1 H^T r
+
+    def contact_problem(self, helix: sh.SuperHelix):
+        """The solvers' ContactProblem: W~ = H D H^T + 2 gamma I with D = K^-2 / w_scale per strand of
+        ``helix``.  D is diagonal and passed as one flat array (per-strand dense diagonal matrices,
+        as before, cost ~1 GB on harolongo only to be recognised as diagonal)."""
+        from .solvers import ContactProblem  # kept off the CLI's start
+
+        return ContactProblem(H=self.H, D_blocks=self.inv_stiffness ** 2 / self.w_scale,
+                              dof_offsets=3 * helix.flat_offsets(), gamma=self.gamma, b=self.b, mu=self.mu)
+
+    def objective(self, r: np.ndarray) -> float:
+        """1/2 || K^-1 H^T r - d ||^2 + gamma_abs ||r||^2 in physical units (r in newtons)."""
+        y = self.inv_stiffness * (self.H.T @ r) - self.d
+        return 0.5 * float(y @ y) + self.gamma * self.w_scale * float(r @ r)
+
+
+@njit(cache=True)
+def _row_sums_of_squares(indptr, indices, data, scale):
+    """sum_j (H_ij scale_j)^2 per row of a CSR H (the diagonal of H diag(scale)^2 H^T)."""
+    out = np.zeros(indptr.shape[0] - 1)
+    for i in range(out.shape[0]):
+        acc = 0.0
+        for p in range(indptr[i], indptr[i + 1]):
+            v = data[p] * scale[indices[p]]
+            acc += v * v
+        out[i] = acc
+    return out
+
+
+def build_inverse_problem(helix, F, H, material: Material, gravity, guess: str, gamma: float,
+                          mu: np.ndarray, stiffness_factor=None) -> InverseProblem:
+    """The scaled SOCQP for gravity forces F (S, N, 3) and contact Jacobian H (K with the per-strand
+    ``stiffness_factor``, None: the material's)."""
+    K = strand_stiffness(helix, material, stiffness_factor)
+    q0_guess = rest_curvature_guess(helix, guess)
+    inv_k = helix.to_flat(np.divide(1.0, K, out=np.zeros_like(K), where=K > 0)).ravel()
+    q = helix.to_flat(helix.curvatures).ravel()
+    d = q - inv_k * helix.to_flat(F).ravel() - helix.to_flat(q0_guess).ravel()
+    # diag(H K^-2 H^T) and b = -H K^-1 d without forming H K^-1 (on harolongo H alone is 1.2 GB)
+    H = sp.csr_matrix(H)
+    diag = _row_sums_of_squares(H.indptr, H.indices, H.data, inv_k)
+    w_scale = float(diag.mean()) if len(diag) and diag.mean() > 0 else 1.0
+    b = -(H @ (inv_k * d))
+    f_scale = material.linear_density * np.linalg.norm(gravity) * float(np.mean(helix.strand_lengths))
+    b_scaled = b / (w_scale * f_scale)
+    return InverseProblem(H=H, inv_stiffness=inv_k, d=d, gamma=gamma, w_scale=w_scale, f_scale=f_scale,
+                          b=b_scaled, mu=np.asarray(mu, dtype=np.float64),
+                          q0_free=helix.to_flat(q0_guess).ravel() + d)
+
+
+def rest_curvatures_with_contacts(helix, material, F, H, forces_flat, stiffness_factor=None) -> np.ndarray:
+    """q0 = q - K^-1 (F + H^T r), (S, N, 3), F the gravity forces (S, N, 3)."""
+    K = strand_stiffness(helix, material, stiffness_factor)
+    HtR = helix.from_flat((H.T @ forces_flat).reshape(-1, 3))
+    return helix.curvatures - np.divide(F + HtR, K, out=np.zeros_like(F), where=K > 0)
+
+
+def cone_violation(forces: np.ndarray, mu: np.ndarray) -> float:
+    """max over contacts of max(0, ||r_T|| - mu r_N) (newtons), 0 for no contact."""
+    if len(forces) == 0:
+        return 0.0
+    f = forces.reshape(-1, 3)
+    return float(np.max(np.maximum(0.0, np.linalg.norm(f[:, 1:], axis=1) - mu * f[:, 0])))
+
+
+def rest_curvature_error_bound(problem: InverseProblem, cp, r, u=None, line_search: bool = True) -> dict:
+    """Certified bound on how far the rest curvatures of forces r (solver units, (3m,), in their cones) are
+    from those of the optimum r*:  |q0 - q0*| = f_scale |K^-1 H^T (r - r*)| = f_scale sqrt(w_scale) |A^T (r - r*)|
+    <= f_scale sqrt(w_scale) sqrt(duality gap)  (solvers/certificate.py).  Returns {"q0_error_bound": relative
+    to |q0*| (>= |q0| - the bound; inf when that is not positive), "q0_error_bound_abs": 1/m, l2 over all dofs,
+    "q0_norm": |q0|}.  ``cp``: problem.contact_problem(helix); ``u``: W r + b when already known."""
+    from .solvers.certificate import error_bound  # kept off the CLI's start
+
+    e = error_bound(cp, r, u, line_search=line_search)
+    absolute = problem.f_scale * math.sqrt(problem.w_scale) * e["bound"]
+    q0 = problem.q0_free - problem.inv_stiffness * (problem.f_scale * e["HTr"])
+    q0_norm = float(np.linalg.norm(q0))
+    rel = absolute / (q0_norm - absolute) if q0_norm > absolute else math.inf
+    return {"q0_error_bound": float(rel), "q0_error_bound_abs": float(absolute), "q0_norm": q0_norm}
+
+
+def solve_inverse_problem(problem: InverseProblem, helix: sh.SuperHelix, params, quiet: bool = True,
+                          redundant_fraction: float = 1.0) -> dict:
+    """Solve the scaled SOCQP with the chosen solver; forces returned in newtons (m, 3).  ``params``: the
+    InversionParams (solver, solver_tolerance, max_iterations, q0_tolerance).  The progress bar counts
+    Gauss-Seidel sweeps (clarabel's polish included) and shows the residual.  ``auto``: choose_solver; if
+    its Gauss-Seidel does not converge on at most 10,000 contacts, clarabel takes over (report:
+    fallback_from)."""
+    from .solvers import solve_contact_problem  # the solvers (clarabel, 0.3 s): kept off the CLI's start
+    from .solvers.gauss_seidel import projected_sweeps
+
+    cp = problem.contact_problem(helix)
+    m = len(problem.mu)
+    method = choose_solver(params.solver, m, redundant_fraction)
+    bounded = problem.gamma > 0 and problem.q0_free is not None
+
+    def run(method):
+        with progress(params.max_iterations, f"contact solve ({method}, {m:,} contacts)", quiet,
+                       unit="sweep") as bar:
+            shown = {"residual": math.nan, "q0": math.nan, "sweeps": 0, "history": []}
+
+            def postfix():
+                text = f"residual {shown['residual']:.1e} (target {params.solver_tolerance:.0e})"
+                if math.isfinite(shown["q0"]):
+                    text += f", q0 within {shown['q0']:.1e}"
+                    if params.q0_tolerance is not None:
+                        text += f" (target {params.q0_tolerance:.0e}"
+                        # at the bound's own rate over the second half of the run (as give_up projects)
+                        need = projected_sweeps(shown["history"], params.q0_tolerance) if len(shown["history"]) > 2 \
+                            else math.nan
+                        if math.isfinite(need) and need > shown["sweeps"]:
+                            text += f", ~{need - shown['sweeps']:,.0f} more sweeps at this rate"
+                        text += ")"
+                bar.set_postfix_str(text)
+
+            def show(sweeps, residual):
+                bar.update(max(0, min(sweeps, bar.total) - bar.n))
+                shown["residual"] = residual
+                shown["sweeps"] = sweeps
+                postfix()
+
+            def stop(r, u):  # the certified rest-curvature error: shown, and a stopping rule with q0_tolerance
+                shown["q0"] = rest_curvature_error_bound(problem, cp, r, u, line_search=False)["q0_error_bound"]
+                if math.isfinite(shown["q0"]):
+                    shown["history"].append((shown["sweeps"], shown["q0"]))
+                postfix()
+                return params.q0_tolerance is not None and shown["q0"] <= params.q0_tolerance
+
+            # the sweep budget (and giving up on it early) is Gauss-Seidel's; clarabel keeps its own iteration limit
+            gs_only = {} if method == "clarabel" else {"max_iter": params.max_iterations, "give_up": GS_GIVE_UP}
+            if method != "clarabel" and bounded and (params.q0_tolerance is not None or not quiet):
+                gs_only["stop"] = stop
+            return solve_contact_problem(cp, law="soc", method=method, tol=params.solver_tolerance, callback=show,
+                                         **gs_only)
+
+    res = run(method)
+    fallback = None
+    if (params.solver == "auto" and method == "gs" and not res.converged and res.status != "certified"
+            and m <= AUTO_CLARABEL_MAX_CONTACTS):
+        fallback = {"solver": "gs", "status": str(res.status), "iterations": int(res.iterations),
+                    "residual": float(res.residual), "time_s": float(res.time_s)}
+        res = run("clarabel")
+    # the forces, projected onto their cones (a round-off move for a solver's point): with any forces in their
+    # cones q0 = q - K^-1 (F + H^T r) is an exact equilibrium, so even an unconverged solve is usable
+    r = np.asarray(res.r, dtype=np.float64).reshape(-1)
+    feasible = bool(np.all(np.isfinite(r)))
+    moved = 0.0
+    if feasible:
+        from .solvers.certificate import project_forces  # kept off the CLI's start
+
+        r, moved = project_forces(r, problem.mu)
+    forces = r.reshape(-1, 3) * problem.f_scale
+    # solved: the residual reached solver_tolerance, or (Gauss-Seidel's "certified") the certified rest-curvature
+    # error reached q0_tolerance first ("stopped_on" says which)
+    converged = bool(res.converged) or res.status == "certified"
+    status = "solved" if converged else str(res.status)
+    out = {"forces": forces, "solver": res.method, "status": status, "converged": converged,
+           "feasible": feasible, "iterations": int(res.iterations), "residual": float(res.residual),
+           "time_s": float(res.time_s), "projected_by": float(moved * problem.f_scale)}
+    if converged:
+        out["stopped_on"] = "residual" if res.converged else "q0_tolerance"
+    if feasible and bounded:
+        bound = rest_curvature_error_bound(problem, cp, r)
+        out["q0_error_bound"] = bound["q0_error_bound"]
+        out["q0_error_bound_abs"] = bound["q0_error_bound_abs"]
+    else:
+        out["q0_error_bound"] = None
+        out["q0_error_bound_note"] = ("no bound: gamma = 0 (the dual is not strongly concave)" if feasible
+                                      else "no bound: the forces are not finite")
+    if res.info.get("projected_sweeps") is not None:
+        out["projected_sweeps"] = float(res.info["projected_sweeps"])
+    if "polish_sweeps" in res.info:  # clarabel's point finished by Gauss-Seidel (solvers.api)
+        out["polish_sweeps"] = int(res.info["polish_sweeps"])
+        out["clarabel_residual"] = float(res.info["clarabel_residual"])
+    if fallback is not None:
+        out["fallback_from"] = fallback
+        out["time_s"] += fallback["time_s"]
+    out["redundant_strand_fraction"] = float(redundant_fraction)
+    return out
+
