@@ -96,6 +96,8 @@ def _run_gs_family(op, law, method, tol, max_iter, r0, options, info):
     stall = COULOMB_STALL_WINDOW if method == "auto" else None
     out = run_gauss_seidel(op, law, tol=tol, max_sweeps=max_iter, r0=r0, stall_window=stall, **options)
     info.update(local_failures=out.local_failures, history=out.history, solve_s=out.solve_s)
+    if out.newton is not None:
+        info["newton"] = out.newton
     if method == "auto" and not out.converged and out.sweeps < max_iter and np.isfinite(out.residual):
         fp_opts = {k: v for k, v in options.items() if k in ("anderson", "time_limit", "check_every", "scale")}
         fp = run_coulomb_fixed_point(op, tol=tol, max_sweeps=max_iter - out.sweeps, r0=out.r, **fp_opts)
@@ -181,7 +183,10 @@ def _solve_assembled(W, b, mu, law, method, tol, max_iter, r0, options) -> Solve
         conv = status == "Solved"
         info.update(form="assembled", setup_s=out.setup_s, solve_s=out.solve_s, kkt_size=out.kkt_size)
     u = W @ r + b
-    rho = _res.rho_from_diagonal(_diagonal_of(W))
+    if method in ("gs", "fixed_point", "auto"):  # W's diagonal blocks, already extracted (saves 9 sparse slices)
+        rho = op.rho if op.order is None else op.rho[np.argsort(op.order)]
+    else:
+        rho = _res.rho_from_diagonal(_diagonal_of(W))
     scale = options.get("scale") or _res.residual_scale(b, rho)
     residual = _res.residual(r, u, mu, rho, scale, law=law)
     if method == "clarabel" and polish and status in ("Solved", "AlmostSolved"):
@@ -210,10 +215,12 @@ def solve_socqp(W, b, mu, method: str = "gs", tol: float = 1e-8, max_iter: int |
     """min 1/2 r^T W r + b^T r  s.t. r_i in K_mu_i = {||r_T|| <= mu r_N}.
 
     W: scipy sparse (3m, 3m) symmetric PSD in 3x3 blocks, normal first in each block; b: (3m,);
-    mu: scalar or (m,).  method: "gs" (block Gauss-Seidel + Anderson acceleration), "apgd", "clarabel"
+    mu: scalar or (m,).  method: "gs" (block Gauss-Seidel + Anderson acceleration + subspace Newton steps), "apgd", "clarabel"
     (interior point, then Gauss-Seidel sweeps from its optimum until the residual is below tol), "auto"
     (= "gs").  tol: on the residual of residual.py (every method).
-    options: gs: anderson=8 (memory; 0 = plain Gauss-Seidel), anderson_start=10, omega=1.0, order="natural",
+    options: gs: anderson=8 (memory; 0 = no Anderson), anderson_start=10, newton=20 (subspace Newton steps on
+    the faces the sweeps identified, tried at the residual checks from this sweep on; None = off, then with
+    anderson=0 plain Gauss-Seidel), newton_every=10, newton_cg=(30, 200), omega=1.0, order="natural",
     symmetric=False (True: forward + backward sweeps; a residual: switch to them once there, run_gauss_seidel),
     check_every=10, time_limit, scale (replaces max_i rho_i ||b_i|| in the residual, e.g. to floor it),
     give_up (stop, status "stalled", once the run's rate projects more than give_up * max_iter sweeps:

@@ -92,7 +92,9 @@ class BlockDelassus:
 
 @njit(cache=True, fastmath=_FM)
 def upper_block_matvec(indptr, indices, blocks, r, b, out):
-    """out = W r + b for W stored as its upper block triangle (row i: blocks (i, j), j >= i)."""
+    """out = W r + b for W stored as its upper block triangle (row i: blocks (i, j), j >= i, the diagonal
+    block first when it is stored).  The off-diagonal loop has no branch (25-30 % faster than testing
+    j != i per block, issue 22)."""
     m = indptr.shape[0] - 1
     for i in range(m):
         out[i, 0] = b[i, 0]
@@ -105,18 +107,33 @@ def upper_block_matvec(indptr, indices, blocks, r, b, out):
         u0 = 0.0
         u1 = 0.0
         u2 = 0.0
-        for p in range(indptr[i], indptr[i + 1]):
+        p0 = indptr[i]
+        p1 = indptr[i + 1]
+        if p0 < p1 and indices[p0] == i:
+            u0 = blocks[p0, 0, 0] * y0 + blocks[p0, 0, 1] * y1 + blocks[p0, 0, 2] * y2
+            u1 = blocks[p0, 1, 0] * y0 + blocks[p0, 1, 1] * y1 + blocks[p0, 1, 2] * y2
+            u2 = blocks[p0, 2, 0] * y0 + blocks[p0, 2, 1] * y1 + blocks[p0, 2, 2] * y2
+            p0 += 1
+        for p in range(p0, p1):
             j = indices[p]
             x0 = r[j, 0]
             x1 = r[j, 1]
             x2 = r[j, 2]
-            u0 += blocks[p, 0, 0] * x0 + blocks[p, 0, 1] * x1 + blocks[p, 0, 2] * x2
-            u1 += blocks[p, 1, 0] * x0 + blocks[p, 1, 1] * x1 + blocks[p, 1, 2] * x2
-            u2 += blocks[p, 2, 0] * x0 + blocks[p, 2, 1] * x1 + blocks[p, 2, 2] * x2
-            if j != i:
-                out[j, 0] += blocks[p, 0, 0] * y0 + blocks[p, 1, 0] * y1 + blocks[p, 2, 0] * y2
-                out[j, 1] += blocks[p, 0, 1] * y0 + blocks[p, 1, 1] * y1 + blocks[p, 2, 1] * y2
-                out[j, 2] += blocks[p, 0, 2] * y0 + blocks[p, 1, 2] * y1 + blocks[p, 2, 2] * y2
+            b00 = blocks[p, 0, 0]
+            b01 = blocks[p, 0, 1]
+            b02 = blocks[p, 0, 2]
+            b10 = blocks[p, 1, 0]
+            b11 = blocks[p, 1, 1]
+            b12 = blocks[p, 1, 2]
+            b20 = blocks[p, 2, 0]
+            b21 = blocks[p, 2, 1]
+            b22 = blocks[p, 2, 2]
+            u0 += b00 * x0 + b01 * x1 + b02 * x2
+            u1 += b10 * x0 + b11 * x1 + b12 * x2
+            u2 += b20 * x0 + b21 * x1 + b22 * x2
+            out[j, 0] += b00 * y0 + b10 * y1 + b20 * y2
+            out[j, 1] += b01 * y0 + b11 * y1 + b21 * y2
+            out[j, 2] += b02 * y0 + b12 * y1 + b22 * y2
         out[i, 0] += u0
         out[i, 1] += u1
         out[i, 2] += u2
