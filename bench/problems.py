@@ -1,7 +1,7 @@
 """Synthetic hair-like contact problems (SOCQPs / Coulomb problems) for the solver benchmarks and tests.
 
 ``hair_like_problem(m)`` builds a groomtool.solvers.ContactProblem that looks like the inverse (or
-dynamic) hair problem of MATH.md sections 4-6:
+dynamic) hair problem of docs/maths.md sections 5-7:
 
 * S strands of N = 20 Super-Helix-like elements, 3 dofs per element (60 dofs per strand); each strand is a
   random smooth curve of length 1 with a material frame per element.

@@ -1,4 +1,4 @@
-"""The inverse problem: rest curvatures q0 that make the groomed shape an equilibrium (MATH.md section 6).
+"""The inverse problem: rest curvatures q0 that make the groomed shape an equilibrium (docs/maths.md section 7).
 
 Isolated strands:   K (q - q0) = F(q)                 =>  q0 = q - K^-1 F(q)
 With contacts:      K (q - q0) = F(q) + H^T r, r_i in K_mu (Coulomb cones), under-determined; take

@@ -1,4 +1,4 @@
-"""Stability of an equilibrium of Super-Helices (MATH.md section 6).
+"""Stability of an equilibrium of Super-Helices (docs/maths.md section 8).
 
 At an equilibrium the Hessian of the total potential is  K - dF/dq  (F the gravity force).
 K = EI * Khat with Khat = l_j diag(GJ/EI, 1, 1), so the equilibrium is stable iff

@@ -1,4 +1,4 @@
-"""Co-helicity relaxation: move the samples, keep the tangents (MATH.md section 3.3).
+"""Co-helicity relaxation: move the samples, keep the tangents (docs/maths.md section 4.3).
 
 Per strand, given samples Q_0..Q_N and unit tangents t_0..t_N, find the closest points
 

@@ -1,4 +1,4 @@
-"""Distance from input vertices to the fitted curve (MATH.md section 3, "Quality").
+"""Distance from input vertices to the fitted curve (docs/maths.md section 4.5).
 
 On element e (start C_e, tangent T_e, world Darboux vector Omega = w a, |a| = 1) let u1 = a x T_e,
 u2 = a x u1 (so a x u2 = -u1).  At t = s - S_e, theta = w t, the Rodrigues rotation gives

@@ -1,6 +1,6 @@
 """Floating tangents: polylines -> G1 piecewise helices (Super-Helix state), with adaptive N.
 
-Pipeline per strand with N elements (MATH.md section 3): N+1 samples Q_i evenly spaced in arc length
+Pipeline per strand with N elements (docs/maths.md section 4): N+1 samples Q_i evenly spaced in arc length
 with tangents t_i (:mod:`.sampling`), closest co-helical points P_i (:mod:`.cohelicity`), the helix
 through each pair (:mod:`.helix`), the frames and curvatures (:mod:`.state`).  :func:`fit_groom`
 chooses N per strand: start at L / initial_spacing elements, measure the distance from every input

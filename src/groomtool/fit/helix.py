@@ -1,4 +1,4 @@
-"""The circular helix through two co-helical point-tangent pairs, batched (MATH.md section 3.1).
+"""The circular helix through two co-helical point-tangent pairs, batched (docs/maths.md section 4.1).
 
 Given unit tangents t0, t1 and a chord c = P1 - P0 with c . (t1 - t0) = 0, find the world rotation
 vector Phi = l Omega and the arc length l of the helix starting at P0 along t0 and ending at P1 along t1:

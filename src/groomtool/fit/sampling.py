@@ -1,4 +1,4 @@
-"""Polylines as smooth curves: cleaning, arc length, and point + tangent samples (MATH.md section 3.2).
+"""Polylines as smooth curves: cleaning, arc length, and point + tangent samples (docs/maths.md section 4.2).
 
 Tangent estimate: at arc length s on segment k (vertices k, k+1), the cubic through the 4 nearest
 vertices k-1..k+2 (shifted inwards at the ends), parameterised by the polyline's vertex arc lengths

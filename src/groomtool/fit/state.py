@@ -1,4 +1,4 @@
-"""From per-element world rotations to the Super-Helix state (MATH.md section 3.4).
+"""From per-element world rotations to the Super-Helix state (docs/maths.md section 4.4).
 
 Root frame R_0 = (n0, n1, n2) with n0 = t_0 and n1 the component orthogonal to t_0 of the world axis
 least aligned with t_0, normalised; n2 = n0 x n1.  Then along the strand

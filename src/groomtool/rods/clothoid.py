@@ -1,4 +1,4 @@
-"""Super Space Clothoids (Casati and Bertails-Descoubes, SIGGRAPH 2013; MATH.md section 2), batched.
+"""Super Space Clothoids (Casati and Bertails-Descoubes, SIGGRAPH 2013; docs/maths.md section 3), batched.
 
 A strand is N elements of lengths l_j.  The material Darboux vector Omega(s) = (twist, kappa1, kappa2) is
 **continuous and piecewise linear**: the generalised coordinates are its values q_i at the N + 1 nodes,
@@ -781,8 +781,9 @@ def stiffness_solve(clothoid: SuperClothoid, stiffness_diag, rhs: np.ndarray) ->
 
 def rest_curvatures(clothoid: SuperClothoid, linear_density: float, gravity, stiffness_diag,
                     kin: Kinematics | None = None) -> np.ndarray:
-    """The isolated inversion q0 = q - K^{-1} F(q) (MATH.md section 6; K block tridiagonal, not diagonal as for the
-    helix), (S, N + 1, 3): the rest nodal curvatures for which the current shape is an equilibrium under gravity."""
+    """The isolated inversion q0 = q - K^{-1} F(q) (docs/maths.md section 7; K block tridiagonal, not diagonal as
+    for the helix), (S, N + 1, 3): the rest nodal curvatures for which the current shape is an equilibrium under
+    gravity."""
     F = gravity_force(clothoid, linear_density, gravity, kin)
     return clothoid.curvatures - stiffness_solve(clothoid, stiffness_diag, F)
 
