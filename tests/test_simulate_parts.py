@@ -6,6 +6,7 @@ import json
 import shutil
 
 import numpy as np
+import scipy.linalg
 import pytest
 import trimesh
 from hypothesis import given, settings
@@ -17,7 +18,7 @@ import dynamics_reference as ref
 from groomtool.material import Material
 from groomtool.rods import superhelix as sh
 from groomtool.simulate import SimulationParams, Simulator, simulate
-from groomtool.simulate_linalg import StepCorrections, _cho_inverse_kernel, cho_inverse, factor_step_matrix
+from groomtool.simulate_linalg import StepCorrections, cho_inverse, factor_step_matrix, strand_chunks
 from groomtool.simulate_progress import StepProgress
 
 GRAVITY = np.array([0.0, -9.81, 0.0])
@@ -44,6 +45,22 @@ def dense_factor_reference(A, B, n_elements):
     return M, modified
 
 
+def dense_factors(A, B, n_elements, *args, **kw):
+    """factor_step_matrix's factors padded to (S, n, n) (padding the identity), and its count."""
+    factors, modified = factor_step_matrix(A, B, n_elements, *args, **kw)
+    return factors.dense(A.shape[1]), modified
+
+
+def cho_inverse_by_triangular_solves(L, n):
+    """Reference (L L^T)^-1 on the first n dofs: X = L^-1 column by column, then X^T X."""
+    X = np.zeros((n, n))
+    for j in range(n):
+        e = np.zeros(n)
+        e[j] = 1.0
+        X[:, j] = scipy.linalg.solve_triangular(L[:n, :n], e, lower=True)
+    return X.T @ X
+
+
 @settings(max_examples=25, deadline=None)
 @given(seed=st.integers(0, 2**31 - 1), unstable=st.floats(0.0, 3.0))
 def test_factor_step_matrix_matches_the_dense_reference(seed, unstable):
@@ -60,12 +77,20 @@ def test_factor_step_matrix_matches_the_dense_reference(seed, unstable):
         Y = rng.normal(size=(m, m))
         B[s, :m, :m] = -unstable * m * (Y + Y.T) / 2.0
         A[s, m:, m:] = np.eye(n - m)
-    chol, modified = factor_step_matrix(A, B, n_elements)
+    factors, modified = factor_step_matrix(A, B, n_elements)
+    chol = factors.dense(n)
     ref, ref_modified = dense_factor_reference(A, B, n_elements)
     assert modified == ref_modified
     got = chol @ np.swapaxes(chol, -1, -2)
     assert np.abs(got - ref).max() <= 1e-10 * np.abs(ref).max()
     assert np.allclose(np.triu(chol, 1), 0.0)
+    rhs = rng.normal(size=(S, n)) * np.repeat(np.arange(N)[None, :] < n_elements[:, None], 3, axis=1)
+    x = factors.solve(rhs)
+    assert np.abs(np.einsum("sij,sj->si", ref, x) - rhs).max() <= 1e-9 * np.abs(rhs).max()
+    for s in range(S):
+        m = 3 * int(n_elements[s])
+        inv = factors.inverse(s)
+        assert np.abs(inv @ ref[s, :m, :m] - np.eye(m)).max() <= 1e-9
 
 
 @pytest.mark.parametrize("seed, strength", [(0, 1.0), (1, 1.0), (0, 1e4), (1, 1e4)])
@@ -88,8 +113,8 @@ def test_step_matrix_from_the_gravity_generators_matches_the_dense_jacobian(seed
     dense = sh.gravity_force_jacobian(helix, mat.linear_density, g)
     parts = sh.gravity_force_jacobian_parts(helix, mat.linear_density, g, sh.kinematics(helix))
     kw = dict(stiffness=K, k_scale=h * h, b_scale=-h * h * strength)  # 1e4: strong enough to modify strands
-    ref, mod_ref = factor_step_matrix(M, dense, counts, **kw)
-    got, mod = factor_step_matrix(M, parts, counts, **kw)
+    ref, mod_ref = dense_factors(M, dense, counts, **kw)
+    got, mod = dense_factors(M, parts, counts, **kw)
     assert mod == mod_ref and (mod > 0 or strength == 1.0)
     assert np.abs(got - ref).max() <= 1e-10 * np.abs(ref).max()
 
@@ -105,17 +130,17 @@ def test_kept_step_corrections_are_the_fresh_ones_at_rest_and_bound_every_mode()
     B = (-2.0 * m * (Y + Y.T) / 2.0)[None]
     n_elements = np.array([m // 3])
     corrections = StepCorrections(1)
-    fresh, modified = factor_step_matrix(A, B, n_elements)
+    fresh, modified = dense_factors(A, B, n_elements)
     assert modified == 1
-    first, _ = factor_step_matrix(A, B, n_elements, corrections)
+    first, _ = dense_factors(A, B, n_elements, corrections)
     assert corrections.get(0) is not None and np.allclose(first, fresh, rtol=0, atol=1e-14 * np.abs(fresh).max())
     kept = corrections.get(0).copy()
-    again, modified = factor_step_matrix(A, B, n_elements, corrections)
+    again, modified = dense_factors(A, B, n_elements, corrections)
     assert modified == 1 and np.array_equal(corrections.get(0), kept)  # the same C: no new decomposition
     assert np.allclose(again, first, rtol=0, atol=1e-13 * np.abs(first).max())
     # a small drift: the kept C is reused and still bounds every mode
     B2 = B * 1.01
-    drifted, _ = factor_step_matrix(A, B2, n_elements, corrections)
+    drifted, _ = dense_factors(A, B2, n_elements, corrections)
     assert np.array_equal(corrections.get(0), kept)
     Mhat = drifted[0] @ drifted[0].T
     assert np.allclose(Mhat, A[0] + B2[0] + kept, rtol=0, atol=1e-12 * np.abs(Mhat).max())
@@ -129,12 +154,22 @@ def test_kept_step_corrections_are_the_fresh_ones_at_rest_and_bound_every_mode()
     assert modified == 0 and corrections.get(0) is None
 
 
+def test_strand_chunks_cover_the_groom_within_the_memory_bound():
+    n_elements = np.array([3, 40, 7, 40, 1, 12, 33] * 5)
+    chunks = strand_chunks(n_elements, max_bytes=2 * (3 * 40) ** 2 * 8)
+    assert chunks[0][0] == 0 and chunks[-1][1] == len(n_elements)
+    assert all(b1 == a2 for (_, b1), (a2, _) in zip(chunks[:-1], chunks[1:]))
+    for a, b in chunks:
+        assert b > a and (b - a == 1 or (b - a) * (3 * n_elements[a:b].max()) ** 2 * 8 <= 2 * (3 * 40) ** 2 * 8)
+    assert strand_chunks(n_elements) == [(0, len(n_elements))]
+
+
 def test_cho_inverse_matches_the_triangular_solves():
     rng = np.random.default_rng(3)
     X = rng.normal(size=(30, 30))
     L = np.linalg.cholesky(X @ X.T + 30 * np.eye(30))
     for n in (30, 21, 3):
-        ref = _cho_inverse_kernel(L, n)
+        ref = cho_inverse_by_triangular_solves(L, n)
         assert np.abs(cho_inverse(L, n) - ref).max() <= 1e-12 * np.abs(ref).max()
         assert np.allclose(cho_inverse(L, n) @ (L[:n, :n] @ L[:n, :n].T), np.eye(n), atol=1e-10)
 

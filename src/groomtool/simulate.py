@@ -51,9 +51,7 @@ from .rods import dynamics as dyn
 from .rods import superhelix as sh
 from .simulate_contacts import (ContactTracker, contact_gaps, match_contacts,  # noqa: F401 (re-exported)
                                 normal_velocity_targets)
-from .simulate_linalg import cho_inverse as _cho_inverse
-from .simulate_linalg import cho_solve as _cho_solve
-from .simulate_linalg import StepCorrections, factor_step_matrix
+from .simulate_linalg import StepCorrections, StrandFactors, factor_step_matrix, strand_chunks
 from .simulate_motion import HeadMotion
 from .simulate_motion import rigid_motion as _rigid_motion  # noqa: F401 (re-exported)
 
@@ -131,16 +129,14 @@ class State:
 
 @dataclass
 class StepSystem:
-    """One step up to the contact problem (exposed for tests): the Cholesky factors of Mhat (S, 3N, 3N;
-    a buffer the next step overwrites),
-    the free rates v_free (S, N, 3), contacts, H, the solver-scaled ContactProblem (r = r_scale r~,
+    """One step up to the contact problem (exposed for tests): the Cholesky factors of Mhat per strand
+    (simulate_linalg.StrandFactors, a buffer the next step overwrites), the free rates v_free (S, N, 3), contacts, H, the solver-scaled ContactProblem (r = r_scale r~,
     u = u_scale u~), and the geometry it was built on."""
 
     helix: sh.SuperHelix
     kin: sh.Kinematics
-    chol: np.ndarray
+    factors: StrandFactors
     v_free: np.ndarray
-    mass: np.ndarray
     contacts: object = None
     H: object = None
     problem: object = None
@@ -213,7 +209,8 @@ class Simulator:
         self.modified_strands = 0  # strand-steps whose step matrix was modified (factor_step_matrix)
         self.clamped_strands = 0  # strand-steps whose rates were scaled down (_limit_rotation)
         self._corrections = StepCorrections(helix.n_strands) if self.params.keep_step_corrections else None
-        self._chol = None  # the step's Cholesky factors, reused from step to step (StepSystem.chol)
+        self._factors = None  # the step's Cholesky factors (StrandFactors), overwritten by the next step
+        self._chunks = strand_chunks(self.n_elements)
         self._contacts_on = self.params.contacts == "all" or (self.params.contacts == "head" and head is not None)
         self._radius = self.params.contact_radius
         self.tracker: ContactTracker | None = None
@@ -259,34 +256,38 @@ class Simulator:
         helix = sh.SuperHelix(pose.roots, pose.frames, self.lengths, st.curvatures, self.n_elements)
         kin = sh.kinematics(helix)
         with_A = p.velocity_terms or pose.moving
-        M, A = dyn.inertia_terms(helix, self.inertia, kin, rates=st.rates if with_A else None,
-                                 order=p.quadrature_order, root_motion=pose.root_motion)
-        if A is None:
-            A = 0.0
         F = sh.gravity_force(helix, self.inertia.linear, self.gravity, kin)
-        t0 = self._time("dynamics", t0)
-
+        parts = (sh.gravity_force_jacobian_parts(helix, self.inertia.linear, self.gravity, kin)
+                 if p.implicit_gravity else None)
         S, N = self.lengths.shape
-        n = 3 * N
         alpha = p.mass_damping + p.air_drag / self.inertia.linear
-        pad = ~np.repeat(self.mask, 3, axis=1)
-        force = F - self.K * (st.curvatures - self.rest) - A
+        force = F - self.K * (st.curvatures - self.rest)
         if self.external is not None:
             force = force + self.external
-        rhs = np.einsum("sij,sj->si", M, st.rates.reshape(S, n)) + h * force.reshape(S, n)
-        rhs[pad] = 0.0
-        t0 = self._time("assembly", t0)
-        # Mhat = (1 + h alpha) M + (h^2 + h beta) K - h^2 dF/dq, factorised strand by strand
-        dF = (sh.gravity_force_jacobian_parts(helix, self.inertia.linear, self.gravity, kin) if p.implicit_gravity
-              else M)
-        chol, modified = factor_step_matrix(M, dF, self.n_elements, self._corrections, a_scale=1.0 + h * alpha,
-                                            stiffness=self.K, k_scale=h * h + h * p.stiffness_damping,
-                                            b_scale=-h * h if p.implicit_gravity else 0.0, out=self._chol)
-        self._chol = chol
-        self.modified_strands += modified
-        v_free = _cho_solve(chol, rhs).reshape(S, N, 3)
+        rhs = np.zeros((S, 3 * N))
+        if self._factors is None:
+            self._factors = StrandFactors(self.n_elements)
+        t0 = self._time("dynamics", t0)
+        # per chunk of strands (M never holds a whole large groom): M and A, then
+        # rhs = M v + h (F - K (q - q0) - A) and Mhat = (1 + h alpha) M + (h^2 + h beta) K - h^2 dF/dq factorised
+        for a, b in self._chunks:
+            M, A = dyn.inertia_terms(helix, self.inertia, kin, rates=st.rates if with_A else None,
+                                     order=p.quadrature_order, root_motion=pose.root_motion, strands=(a, b))
+            n = M.shape[1]
+            Nc = n // 3
+            f = force[a:b, :Nc] if A is None else force[a:b, :Nc] - A
+            rhs[a:b, :n] = np.einsum("sij,sj->si", M, st.rates[a:b, :Nc].reshape(b - a, n)) + h * f.reshape(b - a, n)
+            t0 = self._time("dynamics", t0)
+            dF = tuple(x[a:b, :Nc] for x in parts) if parts is not None else M
+            _, modified = factor_step_matrix(M, dF, self.n_elements[a:b], self._corrections, a_scale=1.0 + h * alpha,
+                                             stiffness=self.K[a:b, :Nc], k_scale=h * h + h * p.stiffness_damping,
+                                             b_scale=-h * h if p.implicit_gravity else 0.0, out=self._factors, first=a)
+            self.modified_strands += modified
+            t0 = self._time("factor", t0)
+        rhs[~np.repeat(self.mask, 3, axis=1)] = 0.0
+        v_free = self._factors.solve(rhs).reshape(S, N, 3)
         t0 = self._time("factor", t0)
-        system = StepSystem(helix=helix, kin=kin, chol=chol, v_free=v_free, mass=M)
+        system = StepSystem(helix=helix, kin=kin, factors=self._factors, v_free=v_free)
         if not self._contacts_on:
             return system
 
@@ -334,7 +335,7 @@ class Simulator:
         touched[system.contacts.strand_b[system.contacts.strand_b >= 0]] = True
         blocks = [np.zeros(3 * int(k)) for k in helix.n_elements]
         for s in np.flatnonzero(touched):
-            blocks[s] = _cho_inverse(system.chol[s], 3 * int(helix.n_elements[s]))
+            blocks[s] = system.factors.inverse(s)
         b = H @ helix.to_flat(system.v_free).ravel() + w
         g = float(np.linalg.norm(self.gravity))
         r_scale = self.inertia.linear * float(np.mean(helix.strand_lengths)) * max(g * self.params.dt, 1e-3)
@@ -393,7 +394,7 @@ class Simulator:
         if impulses is not None and len(impulses):
             gen = helix.from_flat((system.H.T @ impulses.ravel()).reshape(-1, 3))
             S = helix.n_strands
-            v = v + _cho_solve(system.chol, gen.reshape(S, -1)).reshape(v.shape)
+            v = v + system.factors.solve(gen.reshape(S, -1)).reshape(v.shape)
         v = self._limit_rotation(v * self.mask[..., None])
         st = self.state
         self.state = State(st.time + self.params.dt, st.curvatures + self.params.dt * v, v)

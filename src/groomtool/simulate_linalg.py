@@ -1,10 +1,10 @@
 """Per-strand linear algebra of the semi-implicit step: the factorised step matrix and its solves.
 
-Every strand has its own Mhat (3 N_s dofs, padded to 3 N in the batched arrays, padding = identity).
-Factorisations go strand by strand through LAPACK on the real 3 N_s dofs (dpotrf / dpotri: they report
-failure instead of raising, and a strand of 10 elements is not factorised as one of 36); the small
-triangular solves are compiled loops (a multi-threaded BLAS is slow on 100 x 100 systems on a busy
-machine).
+Every strand has its own Mhat on its 3 N_s real dofs.  The factors are stored back to back
+(StrandFactors: memory sum n_s^2, not S max(n_s)^2), made in one compiled pass (LAPACK dpotrf through
+numba, failure reported instead of raised) with the rare eigendecompositions of the unstable-mode
+correction in Python; the small triangular solves are compiled loops, the inverses LAPACK dpotri (a
+multi-threaded BLAS is slow on 100 x 100 systems on a busy machine: the simulator holds it to one thread).
 """
 
 from __future__ import annotations
@@ -41,40 +41,104 @@ def modified_step_matrix(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return 0.5 * (m + m.T)
 
 
+CHUNK_BYTES = 64 * 2**20  # the mass matrices of one chunk of strands (simulator)
+
+
+def strand_chunks(n_elements: np.ndarray, max_bytes: int = CHUNK_BYTES) -> list[tuple[int, int]]:
+    """Consecutive strand ranges (first, stop) whose padded (chunk, 3 N_c, 3 N_c) matrices fit in
+    ``max_bytes`` (N_c the chunk's largest element count)."""
+    n_elements = np.asarray(n_elements, dtype=np.int64)
+    chunks, a = [], 0
+    while a < len(n_elements):
+        b, widest = a, 0
+        while b < len(n_elements):
+            w = max(widest, int(n_elements[b]))
+            if b > a and (b + 1 - a) * (3 * w) ** 2 * 8 > max_bytes:
+                break
+            widest, b = w, b + 1
+        chunks.append((a, b))
+        a = b
+    return chunks
+
+
 class StepCorrections:
-    """The unstable-mode correction C_s = modified_step_matrix(A, B) - A - B of each strand that needed
-    one, kept between steps (factor_step_matrix); stored compactly (only modified strands have a slot)."""
+    """The unstable-mode correction C_s = modified_step_matrix(a, b) - a - b of each strand that needed
+    one, kept between steps (factor_step_matrix).  Stored per strand; ``packed()`` gives them back to
+    back for the compiled kernel (start offset per strand, -1 for none)."""
 
     def __init__(self, n_strands: int):
-        self.slot = np.full(n_strands, -1, dtype=np.int64)
-        self.data = np.zeros((0, 1, 1))
+        self.blocks: dict[int, np.ndarray] = {}
+        self._packed = None
+        self.n_strands = n_strands
 
     def get(self, s: int) -> np.ndarray | None:
-        k = self.slot[s]
-        return None if k < 0 else self.data[k]
+        return self.blocks.get(int(s))
 
     def set(self, s: int, correction: np.ndarray | None) -> None:
         if correction is None:
-            self.slot[s] = -1
+            if self.blocks.pop(int(s), None) is not None:
+                self._packed = None
             return
-        n = correction.shape[0]
-        if self.slot[s] < 0:
-            used = set(self.slot[self.slot >= 0].tolist())
-            free = [k for k in range(len(self.data)) if k not in used]
-            if free:
-                self.slot[s] = free[0]
-            else:
-                self.slot[s] = len(self.data)
-                grown = np.zeros((max(2 * len(self.data), 4), max(self.data.shape[1], n), max(self.data.shape[1], n)))
-                grown[:len(self.data), :self.data.shape[1], :self.data.shape[1]] = self.data
-                self.data = grown
-        if n > self.data.shape[1]:
-            grown = np.zeros((len(self.data), n, n))
-            grown[:, :self.data.shape[1], :self.data.shape[1]] = self.data
-            self.data = grown
-        block = self.data[self.slot[s]]
-        block[:] = 0.0
-        block[:n, :n] = correction
+        self.blocks[int(s)] = np.ascontiguousarray(correction, dtype=np.float64)
+        self._packed = None
+
+    def packed(self) -> tuple[np.ndarray, np.ndarray]:
+        if self._packed is None:
+            start = np.full(self.n_strands, -1, dtype=np.int64)
+            parts, offset = [], 0
+            for s in sorted(self.blocks):
+                start[s] = offset
+                parts.append(self.blocks[s].ravel())
+                offset += self.blocks[s].size
+            self._packed = (np.concatenate(parts) if parts else np.zeros(0), start)
+        return self._packed
+
+
+class StrandFactors:
+    """Lower Cholesky factors L_s of every strand's step matrix on its n_s = 3 N_s real dofs, stored back
+    to back (memory sum n_s^2, not S max(n_s)^2): strand s's factor is data[ptr[s]:ptr[s+1]] as an
+    (n_s, n_s) row-major matrix."""
+
+    def __init__(self, n_elements: np.ndarray):
+        self.sizes = 3 * np.asarray(n_elements, dtype=np.int64)
+        self.ptr = np.zeros(len(self.sizes) + 1, dtype=np.int64)
+        np.cumsum(self.sizes * self.sizes, out=self.ptr[1:])
+        self.data = np.zeros(int(self.ptr[-1]))
+
+    def factor(self, s: int) -> np.ndarray:
+        n = int(self.sizes[s])
+        return self.data[self.ptr[s]:self.ptr[s + 1]].reshape(n, n)
+
+    def dense(self, n_pad: int | None = None) -> np.ndarray:
+        """The factors padded to (S, n, n), the padding the identity (tests)."""
+        n_pad = int(self.sizes.max(initial=0)) if n_pad is None else n_pad
+        out = np.zeros((len(self.sizes), n_pad, n_pad))
+        for s, n in enumerate(self.sizes):
+            out[s, :n, :n] = self.factor(s)
+            out[s, np.arange(n, n_pad), np.arange(n, n_pad)] = 1.0
+        return out
+
+    def solve(self, rhs: np.ndarray) -> np.ndarray:
+        """x = (L L^T)^-1 rhs per strand; rhs (S, n_pad) padded (padding rows are copied: identity)."""
+        rhs = np.ascontiguousarray(rhs, dtype=np.float64)
+        out = rhs.copy()
+        _solve_kernel(self.data, self.ptr, self.sizes, rhs, out)
+        return out
+
+    def inverse(self, s: int) -> np.ndarray:
+        """(L_s L_s^T)^-1, LAPACK dpotri."""
+        return cho_inverse(self.factor(s), int(self.sizes[s]))
+
+
+@njit(cache=True)
+def _solve_kernel(data, ptr, sizes, rhs, out):
+    for s in range(sizes.shape[0]):
+        n = sizes[s]
+        L = data[ptr[s]:ptr[s + 1]].reshape(n, n)
+        y = _forward(L, rhs[s], n)
+        x = _backward(L, y, n)
+        for i in range(n):
+            out[s, i] = x[i]
 
 
 @njit(cache=True)
@@ -87,13 +151,14 @@ def _try_cholesky(a):
 
 
 @njit(cache=True)
-def _factor_kernel(A, a_scale, Kd, k_scale, B, U, G, Dg, b_scale, n_elements, slot, corr, chol, status):
+def _factor_kernel(A, a_scale, Kd, k_scale, B, U, G, Dg, b_scale, n_elements, corr_start, corr, out_data, out_ptr,
+                   status):
     """Per strand, on its 3 N_s real dofs: a = a_scale A + diag(k_scale Kd), b = b_scale B (B dense, or
     when B is empty the symmetric matrix with blocks U_j G_k for j < k and Dg_j on the diagonal: the
-    generators of superhelix.gravity_force_jacobian, never stored densely); if a/2 + b
-    is positive definite, chol = cholesky(a + b) (status 0); else with a kept correction C for which
-    a/2 + b + C is, chol = cholesky(a + b + C) (status 1); else status 2 (a new eigendecomposition is
-    needed: done by the caller).  Padding rows of chol are left as they are."""
+    generators of superhelix.gravity_force_jacobian, never stored densely); if a/2 + b is positive
+    definite, L = cholesky(a + b) (status 0); else with a kept correction C (corr[corr_start[s]:]) for
+    which a/2 + b + C is, L = cholesky(a + b + C) (status 1); else status 2 (a new eigendecomposition
+    is needed: done by the caller).  L goes to out_data[out_ptr[s]:] (n x n row-major)."""
     for s in range(A.shape[0]):
         n = 3 * n_elements[s]
         a = np.empty((n, n))
@@ -122,8 +187,8 @@ def _factor_kernel(A, a_scale, Kd, k_scale, B, U, G, Dg, b_scale, n_elements, sl
         st = 0
         if ok:
             L, ok = _try_cholesky(a + b)
-        if not ok and slot[s] >= 0:
-            C = corr[slot[s], :n, :n]
+        if not ok and corr_start[s] >= 0:
+            C = corr[corr_start[s]:corr_start[s] + n * n].reshape(n, n)
             L, ok = _try_cholesky(0.5 * a + b + C)
             if ok:
                 L, ok = _try_cholesky(a + b + C)
@@ -132,9 +197,10 @@ def _factor_kernel(A, a_scale, Kd, k_scale, B, U, G, Dg, b_scale, n_elements, sl
             status[s] = 2
             continue
         status[s] = st
+        o = out_ptr[s]
         for i in range(n):
             for j in range(n):
-                chol[s, i, j] = L[i, j]
+                out_data[o + i * n + j] = L[i, j]
 
 
 def _dense_from_parts(U, G, Dg, n_el: int) -> np.ndarray:
@@ -151,8 +217,8 @@ def _dense_from_parts(U, G, Dg, n_el: int) -> np.ndarray:
 
 def factor_step_matrix(A: np.ndarray, B, n_elements: np.ndarray,
                        corrections: StepCorrections | None = None, *, a_scale: float = 1.0, stiffness=None,
-                       k_scale: float = 0.0, b_scale: float = 1.0, out: np.ndarray | None = None
-                       ) -> tuple[np.ndarray, int]:
+                       k_scale: float = 0.0, b_scale: float = 1.0, out: StrandFactors | None = None,
+                       first: int = 0) -> tuple[StrandFactors, int]:
     """Cholesky factors of Mhat = a + b per strand, a = a_scale A + k_scale diag(stiffness) (SPD; e.g.
     A = M, a_scale = 1 + h alpha, k_scale = h^2 + h beta), b = b_scale B (B = dF/dq, b_scale = -h^2;
     B dense (S, n, n) or the tuple (U, G, Dg) of superhelix.gravity_force_jacobian_parts).
@@ -166,29 +232,32 @@ def factor_step_matrix(A: np.ndarray, B, n_elements: np.ndarray,
     is used again as long as a/2 + b + C stays positive definite (the same bound on every mode's step
     factor as for an unmodified strand), so the eigendecomposition is only redone when the strand
     moved out of it; at rest the kept C is the fresh one.  Without it every modified strand is
-    decomposed anew.  A, B (S, n, n) padded; returns the factors (S, n, n: padding rows and columns
-    the identity; ``out`` is reused when given) and the number of strands whose step matrix was
-    modified.  Compiled (LAPACK dpotrf per strand), one eigendecomposition in Python per new C.
+    decomposed anew.  A, B: (S, n, n) padded, for the strands first .. first + S - 1 of ``out`` (a
+    StrandFactors of the whole groom, filled in place; new when None, then first = 0).  Returns the
+    factors and the number of these strands whose step matrix was modified.  Compiled (LAPACK dpotrf
+    per strand), one eigendecomposition in Python per new C.
     """
     S, n_pad, _ = A.shape
     n_elements = np.asarray(n_elements, dtype=np.int64)
-    if out is None or out.shape != A.shape:
-        out = np.zeros_like(A)
-        for s in range(S):
-            pad = np.arange(3 * int(n_elements[s]), n_pad)
-            out[s, pad, pad] = 1.0
-    Kd = np.zeros((S, n_pad)) if stiffness is None else np.ascontiguousarray(stiffness, dtype=np.float64).reshape(S, -1)
-    keep = corrections if corrections is not None else StepCorrections(S)
-    status = np.zeros(S, dtype=np.int64)
+    if out is None:
+        out = StrandFactors(n_elements)
+        first = 0
+    Kd = (np.zeros((S, n_pad)) if stiffness is None
+          else np.ascontiguousarray(np.asarray(stiffness, dtype=np.float64).reshape(S, -1)[:, :n_pad]))
     if isinstance(B, tuple):
         U, G, Dg = (np.ascontiguousarray(x, dtype=np.float64) for x in B)
         dense = np.zeros((0, 1, 1))
     else:
         dense = np.ascontiguousarray(B, dtype=np.float64)
         U = G = Dg = np.zeros((0, 1, 3, 3))
-    _factor_kernel(np.ascontiguousarray(A), float(a_scale), Kd, float(k_scale), dense, U, G, Dg,
-                   float(b_scale), n_elements, keep.slot if corrections is not None else np.full(S, -1, np.int64),
-                   keep.data, out, status)
+    if corrections is not None:
+        corr, corr_start = corrections.packed()
+        corr_start = np.ascontiguousarray(corr_start[first:first + S])
+    else:
+        corr, corr_start = np.zeros(0), np.full(S, -1, dtype=np.int64)
+    status = np.zeros(S, dtype=np.int64)
+    _factor_kernel(np.ascontiguousarray(A), float(a_scale), Kd, float(k_scale), dense, U, G, Dg, float(b_scale),
+                   n_elements, corr_start, corr, out.data, np.ascontiguousarray(out.ptr[first:first + S]), status)
     for s in np.flatnonzero(status == 2):
         n = 3 * int(n_elements[s])
         a = a_scale * A[s, :n, :n] + np.diag(k_scale * Kd[s, :n])
@@ -199,13 +268,13 @@ def factor_step_matrix(A: np.ndarray, B, n_elements: np.ndarray,
         m = modified_step_matrix(a, b)
         L = _cholesky(m)
         if L is None:
-            raise np.linalg.LinAlgError(f"strand {s}: the step matrix is not positive definite")
-        out[s, :n, :n] = L
+            raise np.linalg.LinAlgError(f"strand {first + s}: the step matrix is not positive definite")
+        out.factor(first + s)[:] = L
         if corrections is not None:
-            corrections.set(int(s), m - (a + b))
-    if corrections is not None:
+            corrections.set(first + int(s), m - (a + b))
+    if corrections is not None and corrections.blocks:
         for s in np.flatnonzero(status == 0):
-            corrections.set(int(s), None)
+            corrections.set(first + int(s), None)
     return out, int(np.count_nonzero(status > 0))
 
 
@@ -233,20 +302,6 @@ def _backward(L, y, n):
     return x
 
 
-@njit(cache=True)
-def _cho_solve_kernel(L, b, out):
-    for s in range(L.shape[0]):
-        n = L.shape[1]
-        out[s] = _backward(L[s], _forward(L[s], b[s], n), n)
-
-
-def cho_solve(L: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """x = (L L^T)^-1 b for every strand; L (S, n, n) lower, b (S, n), compiled loops."""
-    out = np.empty_like(b)
-    _cho_solve_kernel(np.ascontiguousarray(L), np.ascontiguousarray(b), out)
-    return out
-
-
 def cho_inverse(L: np.ndarray, n: int) -> np.ndarray:
     """(L L^T)^-1 restricted to the first n dofs (a strand's real elements), LAPACK dpotri.
     L: lower triangular with zeros above the diagonal (as factor_step_matrix returns it)."""
@@ -255,24 +310,4 @@ def cho_inverse(L: np.ndarray, n: int) -> np.ndarray:
         raise np.linalg.LinAlgError(f"dpotri failed (info {info})")
     out = inv + inv.T  # dpotri wrote the lower triangle; the upper one is L's zeros
     out.flat[:: n + 1] *= 0.5
-    return out
-
-
-@njit(cache=True)
-def _cho_inverse_kernel(L, n):
-    """Reference (L L^T)^-1 on the first n dofs by triangular solves (kept for tests)."""
-    Linv = np.zeros((n, n))
-    e = np.zeros(n)
-    for j in range(n):
-        e[:] = 0.0
-        e[j] = 1.0
-        Linv[:, j] = _forward(L, e, n)
-    out = np.zeros((n, n))
-    for i in range(n):
-        for j in range(i, n):
-            acc = 0.0
-            for k in range(j, n):  # Linv is lower triangular: rows k >= max(i, j)
-                acc += Linv[k, i] * Linv[k, j]
-            out[i, j] = acc
-            out[j, i] = acc
     return out

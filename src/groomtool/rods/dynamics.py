@@ -113,22 +113,31 @@ def _root_motion_arrays(S: int, root_motion: dict | None):
 
 
 def inertia_terms(helix: SuperHelix, inertia: Inertia, kin: Kinematics | None = None, rates=None, order: int = 4,
-                  root_motion: dict | None = None, mass: bool = True):
+                  root_motion: dict | None = None, mass: bool = True, strands: tuple[int, int] | None = None):
     """(M, A): the mass matrix (S, 3N, 3N; None unless ``mass``) and the velocity terms (S, N, 3; None
     without ``rates``) of one configuration, in one compiled pass over Gauss-Legendre points of
-    ``order`` per element (:func:`mass_matrix`, :func:`velocity_terms` for the formulas)."""
+    ``order`` per element (:func:`mass_matrix`, :func:`velocity_terms` for the formulas).
+
+    ``strands`` = (first, stop): only those strands, N then their largest element count (the
+    simulator walks a large groom in chunks so that M never holds all of it)."""
     kin = kin if kin is not None else kinematics(helix)
-    S, N = helix.lengths.shape
+    a, b = (0, helix.n_strands) if strands is None else (int(strands[0]), int(strands[1]))
+    n_el = np.asarray(helix.n_elements[a:b], dtype=np.int64)
+    S = b - a
+    N = helix.max_elements if strands is None else max(int(n_el.max(initial=1)), 1)
+
+    def part(x, nodes=0):
+        return np.ascontiguousarray(x[a:b, :N + nodes], dtype=np.float64)
+
     xg, wg = np.polynomial.legendre.leggauss(order)
     want_A = rates is not None
-    u = (np.ascontiguousarray(np.asarray(rates, dtype=np.float64).reshape(S, N, 3)) if want_A
+    u = (part(np.asarray(rates, dtype=np.float64).reshape(helix.curvatures.shape)) if want_A
          else np.zeros((S, N, 3)))
-    om0, acc0, al0 = _root_motion_arrays(S, root_motion)
+    om0, acc0, al0 = (np.ascontiguousarray(x[a:b]) for x in _root_motion_arrays(helix.n_strands, root_motion))
     M = np.zeros((S, 3 * N, 3 * N)) if mass else np.zeros((1, 1, 1))
     A = np.zeros((S, N, 3))
-    _inertia_kernel(np.ascontiguousarray(helix.lengths, dtype=np.float64),
-                    np.ascontiguousarray(helix.curvatures, dtype=np.float64), kin.z, kin.C, kin.R, kin.D, kin.Theta,
-                    np.asarray(helix.n_elements, dtype=np.int64), xg, wg, float(inertia.linear),
+    _inertia_kernel(part(helix.lengths), part(helix.curvatures), part(kin.z), part(kin.C, 1), part(kin.R, 1),
+                    part(kin.D), part(kin.Theta), n_el, xg, wg, float(inertia.linear),
                     np.asarray(inertia.rotational, dtype=np.float64), u, om0, acc0, al0, mass, want_A, M, A)
     return (M if mass else None), (A if want_A else None)
 
@@ -187,7 +196,7 @@ def _cross_add(a, b, scale, out):
 @njit(cache=True)
 def _local_frame(t, w, z, buf, psi0, psi1, Dt, p2, dpsi, u, want_motion):
     """At t along an element of curvature w (z = |w|^2): Psi_0(t), Psi_1(t), D(t) = dp/dw and, with
-    ``want_motion``, p''[u, u] and dPsi_1[u] u (the formulas of :func:`_second_directional`)."""
+    ``want_motion``, p''[u, u] and dPsi_1[u] u (the formulas of tests/dynamics_reference._second_directional)."""
     t2 = t * t
     _f_point(z * t2, 2, buf)
     c1 = t * buf[0, 1]
