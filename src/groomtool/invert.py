@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .fit import fit_groom
+from .fit.fitter import DEFAULT_TOLERANCE_M
 from .groom import Groom, GroomError
 from .inverse_problem import (build_inverse_problem, cone_violation, equilibrium_residuals, isolated_rest_curvatures,
                               rest_curvatures_with_contacts, solve_inverse_problem, strand_stiffness)
@@ -53,7 +54,7 @@ class InversionParams:
     """Everything that decides the inversion besides the groom and the head."""
 
     material: Material = field(default_factory=Material)
-    tolerance: float = 5e-4
+    tolerance: float = DEFAULT_TOLERANCE_M
     relative_tolerance: float | None = None
     contacts: str = "none"  # none | head | all
     contact_radius: float | None = None

@@ -10,11 +10,11 @@ import argparse
 
 import numpy as np
 
+from ..fit.fitter import DEFAULT_TOLERANCE_M  # the fit tolerance without --tolerance, whatever --units says
 from ..material import Material
 
 EXIT_OK, EXIT_USER_ERROR, EXIT_NOT_CONVERGED = 0, 1, 2
 EXIT_INTERNAL_ERROR = 3  # an unexpected exception: a bug, reported in one line (GROOM_DEBUG=1: traceback)
-DEFAULT_TOLERANCE_M = 5e-4  # the fit tolerance when --tolerance is not given, whatever --units says
 UP_CHOICES = ["x", "y", "z", "-x", "-y", "-z"]
 MAX_ROD_SEGMENTS = 10_000  # per strand: beyond, the discrete rest data would not fit in memory
 

@@ -12,6 +12,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from .options import DEFAULT_TOLERANCE_M, add_input_options, add_material_options, material_from_args
 
@@ -89,14 +90,7 @@ def _params(args):
 
 
 def _blas_single_thread():
-    """One BLAS thread while simulating (per-strand systems of 30-200 dofs: threads only add contention).
-    Uses threadpoolctl when installed, else leaves BLAS alone (then set OPENBLAS_NUM_THREADS=1)."""
-    try:
-        from threadpoolctl import threadpool_limits
-    except ImportError:
-        from contextlib import nullcontext
-
-        return nullcontext()
+    """One BLAS thread while simulating (per-strand systems of 30-200 dofs: threads only add contention)."""
     return threadpool_limits(limits=1, user_api="blas")
 
 

@@ -24,6 +24,8 @@ from .helix import helix_residuals, solve_chain, solve_helix
 from .sampling import PolylineCurves, drop_repeated_vertices, ensure_four_vertices, vertex_arc_lengths
 from .state import CurveTable, assemble_flat
 
+DEFAULT_TOLERANCE_M = 5e-4  #: the fit tolerance when none is given (m): the inversion's and the CLI's default too
+
 _clock = time.perf_counter  # stage timings (wall clock); the bench may swap in time.process_time
 GROWTH_MIN, GROWTH_MAX = 1.2, 2.0   # bounds on the factor N grows by between passes
 
@@ -187,7 +189,7 @@ def fit_polyline_fixed(points_or_samples, tangents=None, arc_lengths=None, n_ele
     return out
 
 
-def effective_tolerance(strand_lengths, tolerance=5e-4, relative_tolerance=None) -> np.ndarray:
+def effective_tolerance(strand_lengths, tolerance=DEFAULT_TOLERANCE_M, relative_tolerance=None) -> np.ndarray:
     """Per-strand tolerance (m): min(tolerance, relative_tolerance * L) when both are given."""
     L = np.asarray(strand_lengths, dtype=np.float64)
     if tolerance is None and relative_tolerance is None:
@@ -200,7 +202,7 @@ def effective_tolerance(strand_lengths, tolerance=5e-4, relative_tolerance=None)
     return tol
 
 
-def fit_groom(groom: Groom, tolerance: float | None = 5e-4, relative_tolerance: float | None = None,
+def fit_groom(groom: Groom, tolerance: float | None = DEFAULT_TOLERANCE_M, relative_tolerance: float | None = None,
               max_elements: int = 256, initial_spacing: float = 0.02, min_elements: int = 2,
               twist_budget: float = 0.25, progress: bool = False) -> FitResult:
     """Fit every strand of ``groom`` with a Super-Helix within tolerance, choosing N per strand.
