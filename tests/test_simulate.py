@@ -13,7 +13,7 @@
 import numpy as np
 import pytest
 
-import dynamics_reference as ref
+from reference import dynamics as ref
 from groomtool.material import Material
 from groomtool.rods import dynamics as dyn
 from groomtool.rods import superhelix as sh

@@ -14,7 +14,7 @@ from hypothesis import strategies as st
 
 from groomtool.check import check_groom, choose_strands, load_inverted
 from groomtool.invert import InversionParams, invert_groom
-import dynamics_reference as ref
+from reference import dynamics as ref
 from groomtool.material import Material
 from groomtool.rods import superhelix as sh
 from groomtool.simulate import SimulationParams, Simulator, simulate

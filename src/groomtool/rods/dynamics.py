@@ -31,7 +31,7 @@ y_j = R_j p_j the chord of element j and u_j its rate vector:
 (the same formulas with t instead of l_j give every point inside an element).
 
 M and A are computed together in one compiled pass per strand (:func:`inertia_terms`); the vectorised
-numpy version over every Gauss point is the tests' reference (tests/dynamics_reference.py).
+numpy version over every Gauss point is the tests' reference (tests/reference/dynamics.py).
 """
 
 from __future__ import annotations
@@ -196,7 +196,7 @@ def _cross_add(a, b, scale, out):
 @njit(cache=True)
 def _local_frame(t, w, z, buf, psi0, psi1, Dt, p2, dpsi, u, want_motion):
     """At t along an element of curvature w (z = |w|^2): Psi_0(t), Psi_1(t), D(t) = dp/dw and, with
-    ``want_motion``, p''[u, u] and dPsi_1[u] u (the formulas of tests/dynamics_reference._second_directional)."""
+    ``want_motion``, p''[u, u] and dPsi_1[u] u (the formulas of tests/reference/dynamics.py, _second_directional)."""
     t2 = t * t
     _f_point(z * t2, 2, buf)
     c1 = t * buf[0, 1]
