@@ -920,24 +920,6 @@ def gravity_force_jacobian(clothoid: SuperClothoid, linear_density: float, gravi
     return out
 
 
-def _gravity_force_jacobian_full(clothoid: SuperClothoid, linear_density: float, gravity, chunk: int = 1024):
-    """The complex step with every element recomputed per column (reference for the tests)."""
-    S, N = clothoid.lengths.shape
-    n = 3 * (N + 1)
-    out = np.zeros((S, n, n))
-    sid_all, col_all = np.nonzero(np.arange(n)[None, :] // 3 <= clothoid.n_elements[:, None])
-    for start in range(0, len(sid_all), chunk):
-        sid = sid_all[start:start + chunk]
-        col = col_all[start:start + chunk]
-        q = clothoid.curvatures[sid].astype(np.complex128).reshape(len(sid), n)
-        q[np.arange(len(sid)), col] += 1j * COMPLEX_STEP
-        sub = SuperClothoid(clothoid.root_positions[sid], clothoid.root_frames[sid], clothoid.lengths[sid],
-                            q.reshape(len(sid), N + 1, 3), clothoid.n_elements[sid])
-        F = gravity_force(sub, linear_density, gravity)
-        out[sid, :, col] = F.reshape(len(sid), n).imag / COMPLEX_STEP
-    return out
-
-
 def mass_matrix(clothoid: SuperClothoid, linear_density: float, kin: Kinematics | None = None, order: int = 8):
     """M = rhoS int (dC/dq)^T (dC/dq) ds per strand, (S, 3(N + 1), 3(N + 1)), Gauss-Legendre of ``order`` points
     per element (the integrand is smooth but not polynomial: a quadrature, not exact)."""

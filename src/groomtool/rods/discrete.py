@@ -319,14 +319,3 @@ def node_forces(rod_points, rod_offsets, rod_arc, rest_lengths, material, gravit
     return m[:, None] * g[None, :] + point_force_nodes(point_forces, rod_offsets, rod_arc, point_force_at), m
 
 
-def transport(v: np.ndarray, t_old: np.ndarray, t_new: np.ndarray) -> np.ndarray:
-    """Parallel transport of vectors v (N, 3) from unit tangents t_old to t_new (the minimal rotation):
-    P v = c v + b x v + b (b . v) / (1 + c), b = t_old x t_new, c = t_old . t_new."""
-    b = cross(t_old, t_new)
-    c = dot(t_old, t_new)
-    return c[:, None] * v + cross(b, v) + b * (dot(b, v) / (1.0 + c))[:, None]
-
-
-def rotate_about(v: np.ndarray, axis: np.ndarray, angle: np.ndarray) -> np.ndarray:
-    """Rotate v (N, 3), normal to the unit ``axis`` (N, 3), by ``angle`` (N,): v cos + (axis x v) sin."""
-    return np.cos(angle)[:, None] * v + np.sin(angle)[:, None] * cross(axis, v)
