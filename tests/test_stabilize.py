@@ -16,7 +16,6 @@ import scipy.linalg
 import trimesh
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from scipy.spatial.transform import Rotation
 
 from groomtool import Groom, Material
 from groomtool.contact.jacobian import contact_jacobian
@@ -26,23 +25,12 @@ from groomtool.simulate import SimulationParams, Simulator
 from groomtool.stability import contact_load_hessians, held_stiffness_ratios, stiffness_ratios
 from groomtool.stabilize import stiffening_step
 
+from reference.grooms import random_helix
 from test_invert_contacts import SPHERE_R, _independent_cvxpy, _w_scale, draped_groom, draped_strand
 from test_invert_contacts import _params as _contact_params
 
 MAT = Material()
 G = np.array([0.0, -9.81, 0.0])
-
-
-def random_helix(seed, n_strands=3, max_elements=6):
-    rng = np.random.default_rng(seed)
-    n = rng.integers(1, max_elements + 1, n_strands)
-    lengths = np.zeros((n_strands, max_elements))
-    q = np.zeros((n_strands, max_elements, 3))
-    for i, k in enumerate(n):
-        lengths[i, :k] = rng.uniform(0.005, 0.04, k)
-        q[i, :k] = rng.normal(size=(k, 3)) * 30.0
-    return sh.SuperHelix(0.05 * rng.normal(size=(n_strands, 3)),
-                         Rotation.random(n_strands, random_state=seed).as_matrix(), lengths, q, n)
 
 
 def load_potential_hessian(helix, strand, s, f, h=1e-4):
@@ -71,7 +59,7 @@ def load_potential_hessian(helix, strand, s, f, h=1e-4):
 @given(seed=st.integers(0, 10_000), loads=st.integers(1, 4))
 @settings(max_examples=12, deadline=None)
 def test_contact_load_hessian_is_the_second_derivative_of_the_load_potential(seed, loads):
-    helix = random_helix(seed)
+    helix = random_helix(seed, n_strands=3, max_elements=6)
     rng = np.random.default_rng(seed + 1)
     strand = np.repeat(np.arange(helix.n_strands), loads)
     s = rng.uniform(0, 1, len(strand)) * helix.strand_lengths[strand]
