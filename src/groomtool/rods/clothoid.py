@@ -72,6 +72,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from numba import njit
 
+from . import superhelix
+
 RHO = 1.0  # sub-step bound: 2 (|a| h + |b| h^2) <= RHO
 TOL = 1e-16  # relative truncation bound of each series
 K_MAX = 48  # guard; with RHO = 1 the rule stops near 18
@@ -580,29 +582,9 @@ def _with_moments(clothoid: SuperClothoid, kin: Kinematics | None) -> Kinematics
 
 
 def locate(clothoid: SuperClothoid, strand, s) -> tuple[np.ndarray, np.ndarray]:
-    """Element index and local parameter t of arc length s on each strand (clamped to [0, L])."""
-    strand = np.ascontiguousarray(strand, dtype=np.int64)
-    s = np.ascontiguousarray(s, dtype=np.float64)
-    elem = np.empty(len(s), dtype=np.int64)
-    t = np.empty(len(s))
-    _locate_kernel(np.ascontiguousarray(clothoid.element_starts), clothoid.n_elements, strand, s, elem, t)
-    return elem, t
-
-
-@njit(cache=True)
-def _locate_kernel(starts, n_elements, strand, s, elem, t):
-    for i in range(s.shape[0]):
-        k = strand[i]
-        n = max(n_elements[k], 1)
-        lo, hi = 0, n - 1  # the last element whose start is <= s
-        while lo < hi:
-            mid = (lo + hi + 1) // 2
-            if starts[k, mid] <= s[i]:
-                lo = mid
-            else:
-                hi = mid - 1
-        elem[i] = lo
-        t[i] = min(max(s[i] - starts[k, lo], 0.0), starts[k, lo + 1] - starts[k, lo])
+    """Element index and local parameter t of arc length s on each strand (clamped to [0, L]): the
+    Super-Helix's search (:func:`groomtool.rods.superhelix.locate`), the elements being laid out alike."""
+    return superhelix.locate(clothoid, strand, s)
 
 
 @njit(cache=True)
