@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from ..groom import Groom, GroomError
+from ..material import Material
 from .atomic import atomic_path
 from .validate import validate
 
@@ -61,7 +62,7 @@ def write_alembic(source, path, per_element: int = 8, guides: bool = False) -> P
     points, offsets, rod_data, _, arc = _rod_data(arrays, samples)
     rest = _consumer_rest(arrays, points, offsets, arc, rod_data)
     S = len(offsets) - 1
-    radius = float(arrays.get("radius", 40e-6))
+    radius = float(arrays.get("radius", Material.radius))  # rest.npz before it held the radius
     material = {}
     for key in MATERIAL:
         if key in arrays:

@@ -28,6 +28,7 @@ import numpy as np
 from pxr import Gf, Sdf, Usd, UsdGeom, UsdPhysics, UsdUtils, Vt
 
 from ..groom import Groom, GroomError
+from ..material import Material
 from ..rods import superhelix as sh
 from ..version import __version__
 from . import fields
@@ -92,7 +93,7 @@ def build_stage(arrays: dict, per_element: int = 8, head=None) -> Usd.Stage:
     root = UsdGeom.Xform.Define(stage, GROOM).GetPrim()
     stage.SetDefaultPrim(root)
     samples = fields.sample(arrays, per_element)
-    radius = float(arrays.get("radius", 40e-6))
+    radius = float(arrays.get("radius", Material.radius))  # rest.npz before it held the radius
     rod_points, rod_offsets, rod_data, origin, arc = _rod_data(arrays, samples)
     stage.GetRootLayer().customLayerData = {"groomtool": {
         "version": __version__, "schema_version": SCHEMA_VERSION, "up": up,
@@ -408,7 +409,7 @@ def _exact(prim, key: str, values: np.ndarray):
         attr = prim.CreateAttribute(name, Sdf.ValueTypeNames.Double3, custom=True)
         attr.Set(Gf.Vec3d(*map(float, values)))
         return attr
-    n, trailing = len(values), values.shape[1:]
+    trailing = values.shape[1:]
     if values.dtype.kind in "iub":
         attr = prim.CreateAttribute(name, Sdf.ValueTypeNames.IntArray, custom=True)
         attr.Set(Vt.IntArray.FromNumpy(np.ascontiguousarray(values.astype(np.int32).ravel())))
