@@ -203,15 +203,20 @@ def _factor_kernel(A, a_scale, Kd, k_scale, B, U, G, Dg, b_scale, n_elements, co
                 out_data[o + i * n + j] = L[i, j]
 
 
-def _dense_from_parts(U, G, Dg, n_el: int) -> np.ndarray:
+@njit(cache=True)
+def _dense_from_parts(U, G, Dg, n_el):
     """The symmetric (3 n_el, 3 n_el) matrix with blocks U_j G_k (j < k), their transposes, Dg_j."""
     out = np.zeros((3 * n_el, 3 * n_el))
     for j in range(n_el):
-        out[3 * j:3 * j + 3, 3 * j:3 * j + 3] = Dg[j]
+        for x in range(3):
+            for y in range(3):
+                out[3 * j + x, 3 * j + y] = Dg[j, x, y]
         for k in range(j + 1, n_el):
-            block = U[j] @ G[k]
-            out[3 * j:3 * j + 3, 3 * k:3 * k + 3] = block
-            out[3 * k:3 * k + 3, 3 * j:3 * j + 3] = block.T
+            for x in range(3):
+                for y in range(3):
+                    v = U[j, x, 0] * G[k, 0, y] + U[j, x, 1] * G[k, 1, y] + U[j, x, 2] * G[k, 2, y]
+                    out[3 * j + x, 3 * k + y] = v
+                    out[3 * k + y, 3 * j + x] = v
     return out
 
 
