@@ -90,6 +90,9 @@ def run_child(spec: dict) -> dict:
 
         tiny, _ = make_hair_like(40, variant=spec.get("variant", "inverse"))
         solve_contact_problem(tiny, law=law, method=method, max_iter=20, **opts)
+        if method == "gs" and law == "soc":
+            solve_contact_problem(tiny, law=law, method=method, max_iter=20, **dict(opts, newton=1, newton_every=1,
+                                                                                    check_every=1))
         assemble_upper(tiny)
     tracemalloc.start()
     c0 = time.process_time()
@@ -164,8 +167,11 @@ def run_shared_child(spec: dict) -> dict:
         opts["stop"] = lambda r, u: _res.bogus_error(r.reshape(-1, 3), u.reshape(-1, 3), mu, trace_) <= bogus_tol
     if spec.get("order") == "reversed":
         opts["order"] = np.arange(b.size // 3)[::-1].copy()
-    # warm the numba caches on a small principal block so compilation never counts
-    solve_socqp(W[:600, :600], b[:600], mu[:200], max_iter=30, **{k: v for k, v in opts.items() if k not in ("order", "stop")})
+    # warm the numba caches on a small principal block so compilation never counts (the second call takes
+    # Newton steps whatever the options, so their kernels are loaded too)
+    warm = {k: v for k, v in opts.items() if k not in ("order", "stop")}
+    solve_socqp(W[:600, :600], b[:600], mu[:200], max_iter=30, **warm)
+    solve_socqp(W[:600, :600], b[:600], mu[:200], max_iter=30, **dict(warm, newton=1, newton_every=1, check_every=1))
     c0 = time.process_time()
     w0 = time.perf_counter()
     res = solve_socqp(W, b, mu, tol=spec.get("tol", 1e-8), max_iter=spec.get("max_iter"), **opts)
@@ -213,6 +219,8 @@ def row(r):
     opts = s.get("options", {})
     if opts.get("anderson") == 0:
         label += " no-AA"
+    if "newton" in opts and opts["newton"] is None:
+        label += " no-Newton"
     if r.get("switched_to"):
         label += f" -> {r['switched_to']}"
     if s.get("tol", 1e-8) != 1e-8:
@@ -299,7 +307,9 @@ def main():
     for m in sizes:
         go({"m": m, "method": "gs", "options": {"form": "assembled"}}, repeat=3 if m == 30000 else 1)
         go({"m": m, "method": "gs", "options": {"form": "matrix_free"}})
-        go({"m": m, "method": "gs", "options": {"form": "assembled", "anderson": 0}, "max_iter": 5000})
+        go({"m": m, "method": "gs", "options": {"form": "assembled", "newton": None}})  # Anderson only
+        go({"m": m, "method": "gs", "options": {"form": "assembled", "anderson": 0, "newton": None},
+            "max_iter": 5000})  # plain Gauss-Seidel
         go({"m": m, "method": "apgd", "options": {"form": "assembled"}})
     # a looser tolerance, for the comparison with so-bogus's own error figure
     if 30000 in sizes:
@@ -367,17 +377,18 @@ def main():
 
 
 SHARED_EXPERIMENTS = [  # 30k, random pairing, gamma 0.01: what was tried for the sweep count (issue 22)
-    ({"options": {"anderson": 0}, "max_iter": 3000}, "plain Gauss-Seidel (no Anderson)"),
-    ({"options": {"anderson": 3}}, "Anderson memory 3"),
-    ({"options": {"anderson": 16}}, "Anderson memory 16"),
-    ({"options": {"symmetric": True}}, "symmetric sweeps (forward + backward)"),
-    ({"options": {"symmetric": 1e-5}}, "symmetric once the residual is <= 1e-5"),
-    ({"options": {"omega": 1.3}}, "over-relaxation omega 1.3"),
-    ({"order": "reversed"}, "reverse order (tip to root within a strand)"),
+    ({"options": {"newton": None}}, "no Newton steps (Anderson only: the previous default)"),
+    ({"options": {"anderson": 0}}, "Newton steps, no Anderson"),
+    ({"options": {"newton_cg": [100, 100]}}, "Newton with 100 CG iterations at every step"),
+    ({"options": {"newton_cg": [50, 150]}}, "Newton with 50 / 150 CG iterations"),
+    ({"options": {"newton": 40}}, "first Newton step after 40 sweeps"),
+    ({"options": {"newton_every": 20}}, "Newton steps 20 sweeps apart"),
     ({"stop": "bogus"}, "stopped on so-bogus's own error <= 8.8e-9 (like for like)"),
-    ({"tol": 1e-6}, "tolerance 1e-6"),
     ({"tol": 1e-4}, "tolerance 1e-4"),
+    ({"tol": 1e-10}, "tolerance 1e-10"),
 ]
+# measured before the subspace Newton steps (2026-11-24 21:15, Anderson only), kept in docs/solvers.md section 10:
+# plain Gauss-Seidel 3,000 sweeps to 9e-7, Anderson memory 3 / 16, symmetric sweeps, omega 1.3, reverse order
 
 
 def _median(xs):
@@ -530,7 +541,8 @@ def write_markdown(meta, runs, cl_runs, target=None, shared=None):
         f"{meta['date']}, Python {meta['python']}, {meta['cpus']} CPUs (shared machine; load average at the end "
         f"{', '.join(f'{x:.1f}' for x in meta['load_at_end'])}). One core: NUMBA_NUM_THREADS=1, BLAS on one thread.",
         "Problems: bench/problems.py (S = m/4 strands of 20 elements, gamma = 0.01 relative to mean diag(W) = 1,"
-        " mu in [0.2, 0.4]).  Tolerance: residual (residual.py) <= 1e-8.",
+        " mu in [0.2, 0.4]).  Tolerance: residual (residual.py) <= 1e-8.  gs: the defaults (Anderson and, on the"
+        " assembled form, subspace Newton steps); no-Newton: Anderson only; no-AA no-Newton: plain Gauss-Seidel.",
         "",
         "## Runs",
         "",
@@ -545,7 +557,8 @@ def write_markdown(meta, runs, cl_runs, target=None, shared=None):
             "",
             "## Target (30,000 contacts, SOCQP, one core)",
             "",
-            f"so-bogus: {BOGUS_30K_S} s (925 sweeps); target {TARGET_30K_S} s.  groomtool GS (assembled, Anderson): "
+            f"so-bogus: {BOGUS_30K_S} s (925 sweeps); target {TARGET_30K_S} s.  groomtool GS (assembled, Anderson, "
+            f"subspace Newton steps: the defaults): "
             f"setup {r['setup_s']:.2f} s + solve {r['solve_s']:.2f} s (cpu {r['cpu_s']:.2f} s), {r['iterations']} sweeps, "
             f"residual {r['residual']:.1e}, bogus-style error {r['bogus_error']:.1e}.",
         ]
