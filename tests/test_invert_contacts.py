@@ -274,8 +274,10 @@ def test_unconverged_solve_keeps_its_feasible_forces_with_a_certified_bound(drap
     from groomtool.invert import FeasibleSolveWarning
 
     groom, ref = draped
-    with pytest.warns(FeasibleSolveWarning, match=r"stopped \(max_iter\).*exact equilibrium.*certified within"):
+    with pytest.warns(FeasibleSolveWarning, match=r"stopped \(max_iter\).*exact equilibrium.*certified within") as seen:
         res = invert_groom(groom, head=sphere, params=_params(solver="gs", max_iterations=200))
+    # one warning for the result, not one per stabilisation round
+    assert sum(issubclass(w.category, FeasibleSolveWarning) for w in seen) == 1
     solve = res.report["solve"]
     assert solve["status"] == "feasible" and solve["stopped_with"] == "max_iter" and solve["iterations"] == 200
     assert solve["residual"] > 1e-6 and "warning" in solve
@@ -287,6 +289,19 @@ def test_unconverged_solve_keeps_its_feasible_forces_with_a_certified_bound(drap
     assert solve["q0_error_bound"] >= true - ref_bound
     assert solve["q0_error_bound"] < 30 * true  # and it says something (measured 3.4x here)
     assert solve["q0_error_bound_abs"] > 0
+
+
+def test_an_unconverged_solve_warns_once_over_the_stabilisation_rounds(draped, sphere):
+    """Each stiffening round re-solves (and runs out of sweeps again): one warning, for the result."""
+    from groomtool.invert import FeasibleSolveWarning
+
+    groom, _ = draped
+    with pytest.warns(FeasibleSolveWarning) as seen:
+        res = invert_groom(groom, head=sphere, params=_params(solver="gs", max_iterations=200,
+                                                                 stabilize="stiffness"))
+    assert res.report["stability"]["stabilization"]["rounds"] >= 1  # the situation this test is about
+    assert sum(issubclass(w.category, FeasibleSolveWarning) for w in seen) == 1
+    assert res.report["solve"]["status"] == "feasible"
 
 
 def test_q0_tolerance_stops_gauss_seidel_once_the_rest_curvatures_are_certified(draped, sphere):

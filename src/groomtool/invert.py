@@ -269,7 +269,7 @@ def invert_groom(groom: Groom, head=None, params: InversionParams | None = None,
                 if params.strict or not solve.get("feasible"):
                     report["timings_s"] = dict(timer.stages)
                     raise SolverFailure(_failure_message(solve, params), solve["status"], solve["residual"], report)
-                _accept_feasible(report["solve"], params)
+                _accept_feasible(report["solve"], params)  # warned once, after the last round
             with timer.stage("rest_curvatures"):
                 rest = rest_curvatures_with_contacts(helix, material, F, H, forces.ravel(), stiffness_factor=factor)
         else:
@@ -286,6 +286,8 @@ def invert_groom(groom: Groom, head=None, params: InversionParams | None = None,
             break
         history[-1]["raised"] = int(np.count_nonzero(step > factor))
         factor, rounds = step, rounds + 1
+    if contacts is not None and report["solve"].get("warning"):
+        warnings.warn(report["solve"]["warning"], FeasibleSolveWarning, stacklevel=2)
 
     extra = {}
     if params.discrete_rest_data:
@@ -458,7 +460,8 @@ def _failure_message(solve: dict, params: InversionParams) -> str:
 
 def _accept_feasible(solve: dict, params: InversionParams) -> str:
     """An unconverged but feasible solve (not --strict): report status "feasible" (the solver's own status in
-    "stopped_with"), warn in one line; returns the warning."""
+    "stopped_with") and the one-line warning (solve["warning"], issued by invert_groom after its last
+    stabilisation round, not once per round); returns it."""
     solve["stopped_with"] = solve["status"]
     solve["status"] = "feasible"
     bound = solve.get("q0_error_bound")
@@ -468,7 +471,6 @@ def _accept_feasible(solve: dict, params: InversionParams) -> str:
            f"after {solve['iterations']} iterations (target {params.solver_tolerance:.0e}): the forces lie in their "
            f"cones, so the groom is an exact equilibrium, with {how}; --strict refuses such results")
     solve["warning"] = msg
-    warnings.warn(msg, FeasibleSolveWarning, stacklevel=3)
     return msg
 
 
