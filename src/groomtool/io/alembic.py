@@ -51,7 +51,7 @@ def write_alembic(source, path, per_element: int = 8, guides: bool = False) -> P
     groom in centimetres with Unreal's ``groom_*`` attributes; written atomically, returns the path."""
     from . import fields
     from .results import load_arrays
-    from .usd import _consumer_rest, _rod_data
+    from .fields import consumer_rest_data, rod_polyline_data
 
     path = Path(path)
     Abc, AbcGeom, imath = _modules(path)
@@ -59,8 +59,8 @@ def write_alembic(source, path, per_element: int = 8, guides: bool = False) -> P
         raise GroomError(f"{path}: Alembic files end in .abc")
     arrays = load_arrays(source)
     samples = fields.sample(arrays, per_element)
-    points, offsets, rod_data, _, arc = _rod_data(arrays, samples)
-    rest = _consumer_rest(arrays, points, offsets, arc, rod_data)
+    points, offsets, rod_data, _, arc = rod_polyline_data(arrays, samples)
+    rest = consumer_rest_data(arrays, points, offsets, arc, rod_data)
     S = len(offsets) - 1
     radius = float(arrays.get("radius", Material.radius))  # rest.npz before it held the radius
     material = {}

@@ -246,3 +246,150 @@ def der_rest_geometry(arrays: dict, points: np.ndarray, offsets: np.ndarray, arc
     twist = np.arctan2(np.einsum("ij,ij->i", np.cross(pu, w), tb), np.einsum("ij,ij->i", pu, w))
     return {"der_rest_lengths": rest_len, "der_rest_kappa": kappa, "der_rest_twist": twist,
             "der_frames": groomed_dirs}
+
+
+# ------------------------------------------------------------------------- rest data for other simulators
+ROD_PREFIXES = ("der_", "cosserat_", "node_")  #: rest.npz keys of the discrete-rod export
+
+
+def _rest_arc(arrays: dict, points: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+    """Helix arc length of the rod vertices: their polyline arc length scaled to the helix length
+    (as :func:`der_rest_geometry` does)."""
+    arc = polyline_arc(points, offsets)
+    counts = np.diff(offsets)
+    tips = arc[np.maximum(offsets[1:] - 1, 0)]
+    lengths = result_helix(arrays).strand_lengths
+    strand = np.repeat(np.arange(len(counts)), counts)
+    return arc * (lengths / np.where(tips > 0, tips, 1.0))[strand]
+
+
+def _edge_frames(points: np.ndarray, offsets: np.ndarray, helix_frames: np.ndarray) -> np.ndarray:
+    """(E, 3, 3) frames of the polyline's edges, rows (d1, d2, d3 = edge tangent): d1 the helix
+    frame's n1 at the edge midpoint made normal to the edge (docs/usd.md)."""
+    from ..rods.discrete import edge_start_vertices
+
+    e0 = edge_start_vertices(offsets)
+    t = points[e0 + 1] - points[e0]
+    t /= np.linalg.norm(t, axis=1)[:, None]
+    d1 = helix_frames[:, :, 1] - np.einsum("ij,ij->i", helix_frames[:, :, 1], t)[:, None] * t
+    d1 /= np.linalg.norm(d1, axis=1)[:, None]
+    return np.stack([d1, np.cross(t, d1), t], axis=1)
+
+
+def _per_vertex(edge_values: np.ndarray, offsets: np.ndarray, tip=None) -> np.ndarray:
+    """Edge values at vertices: edge j at its first vertex; each tip gets ``tip`` (default: the
+    value of the strand's last edge)."""
+    from ..rods.discrete import edge_start_vertices
+
+    e0 = edge_start_vertices(offsets)
+    out = np.empty((int(offsets[-1]),) + edge_values.shape[1:], dtype=edge_values.dtype)
+    out[e0] = edge_values
+    tips = offsets[1:] - 1
+    out[tips] = edge_values[np.searchsorted(e0, tips) - 1] if tip is None else tip
+    return out
+
+
+def frames_to_quaternions(frames: np.ndarray) -> np.ndarray:
+    """(n, 3, 3) frames with rows (d1, d2, d3) -> (n, 4) unit quaternions (x, y, z, w) of the
+    rotation taking the axes (X, Y, Z) to (d1, d2, d3), w >= 0."""
+    from scipy.spatial.transform import Rotation
+
+    if len(frames) == 0:
+        return np.zeros((0, 4))
+    q = Rotation.from_matrix(np.transpose(frames, (0, 2, 1))).as_quat()
+    return q * np.where(q[:, 3:] < 0, -1.0, 1.0)
+
+
+def quaternions_to_frames(q: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`frames_to_quaternions`: (n, 4) (x, y, z, w) -> (n, 3, 3) rows (d1, d2, d3)."""
+    from scipy.spatial.transform import Rotation
+
+    if len(q) == 0:
+        return np.zeros((0, 3, 3))
+    return np.transpose(Rotation.from_quat(np.asarray(q, dtype=np.float64)).as_matrix(), (0, 2, 1))
+
+
+def _quat_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Hamilton products a b of (n, 4) quaternions (x, y, z, w)."""
+    av, aw, bv, bw = a[:, :3], a[:, 3:], b[:, :3], b[:, 3:]
+    return np.concatenate([aw * bv + bw * av + np.cross(av, bv),
+                           aw * bw - np.einsum("ij,ij->i", av, bv)[:, None]], axis=1)
+
+
+def consumer_rest_data(arrays: dict, points: np.ndarray, offsets: np.ndarray, arc, rod_data: dict) -> dict:
+    """Per-vertex rest data of the rod polyline (V vertices) as simulators name them (USD, Alembic).
+
+    points: the rest helices at the vertices' arc lengths; rotation: the rest frame of the edge
+    leaving each vertex (tip: its last edge's) as a quaternion; bend: q_i^-1 q_(i+1) (identity at
+    the last edge and the tip); length: the rest length of the edge leaving each vertex (der_rest_lengths
+    when the data have them; 0 at the tip); normal: d1 of the rest frame; orient: the groomed frame.
+    """
+    from ..rods.discrete import edge_start_vertices
+
+    counts = np.diff(offsets)
+    S = len(counts)
+    strand = np.repeat(np.arange(S), counts)
+    if arc is None:
+        arc = _rest_arc(arrays, points, offsets)
+    rest_helix = result_helix(arrays, rest=True)
+    rest_points, _ = sh.evaluate(rest_helix, strand, arc)
+    out = {"points": rest_points}
+    if np.any(counts < 2):
+        raise GroomError("USD rest data need strands of at least 2 vertices")
+    e0 = edge_start_vertices(offsets)
+    mid = 0.5 * (arc[e0] + arc[e0 + 1])
+    _, rest_helix_frames = sh.evaluate(rest_helix, strand[e0], mid)
+    rest_frames = _edge_frames(rest_points, offsets, rest_helix_frames)
+    if "cosserat_directors" in rod_data:
+        groomed = rod_data["cosserat_directors"][0]
+    elif "der_frames" in rod_data:
+        groomed = rod_data["der_frames"][0]
+    else:
+        _, fitted_frames = sh.evaluate(result_helix(arrays), strand[e0], mid)
+        groomed = _edge_frames(points, offsets, fitted_frames)
+    q_rest = frames_to_quaternions(rest_frames)
+    rotation = _per_vertex(q_rest, offsets)
+    out["rotation"] = rotation
+    out["normals"] = _per_vertex(rest_frames[:, 0], offsets)
+    nxt = np.minimum(np.arange(len(points)) + 1, len(points) - 1)
+    bend = _quat_multiply(rotation * [-1.0, -1.0, -1.0, 1.0], rotation[nxt])
+    bend[offsets[1:] - 1] = [0.0, 0.0, 0.0, 1.0]
+    out["bend_rotation"] = bend * np.where(bend[:, 3:] < 0, -1.0, 1.0)
+    if "der_rest_lengths" in rod_data:
+        lengths = rod_data["der_rest_lengths"][0]
+    else:
+        lengths = np.linalg.norm(rest_points[e0 + 1] - rest_points[e0], axis=1)
+    out["length"] = _per_vertex(np.asarray(lengths, dtype=np.float64), offsets, tip=0.0)
+    out["orient"] = _per_vertex(frames_to_quaternions(np.asarray(groomed, dtype=np.float64)), offsets)
+    return out
+
+
+def rod_polyline_data(arrays: dict, samples) -> tuple:
+    """Points, offsets, {key: (values, layout)}, origin and helix arc lengths (None: from the
+    polyline) of the discrete-rod polyline the USD and Alembic writers write.
+
+    With a discrete export (``rod_points``, ``rod_offsets`` and der_/cosserat_/node_ arrays) that
+    polyline and its arrays; without, the fitted helix samples.  DER data missing from the export
+    are computed from the rest helix (:func:`der_rest_geometry`).
+    """
+    if "rod_points" in arrays and "rod_offsets" in arrays:
+        points = np.asarray(arrays["rod_points"], dtype=np.float64).reshape(-1, 3)
+        offsets = np.asarray(arrays["rod_offsets"], dtype=np.int64)
+        arc, origin = None, "discrete export"
+    else:
+        points, offsets, arc, origin = samples.points, samples.offsets, samples.arc, "rest helix geometry"
+    V, S = len(points), len(offsets) - 1
+    sizes = {V: "vertex", V - S: "edge", V - 2 * S: "interior"}
+    data = {}
+    for key, value in arrays.items():
+        value = np.asarray(value)
+        if key.startswith(ROD_PREFIXES) and value.dtype.kind in "fiub" and value.ndim >= 1 and S > 0:
+            if len(value) in sizes:
+                data[key] = (value, sizes[len(value)])
+    if not any(k.startswith("der_rest_") for k in data) and np.all(np.diff(offsets) >= 3):
+        for key, value in der_rest_geometry(arrays, points, offsets, arc).items():
+            data[key] = (value, sizes[len(value)])
+        if origin == "discrete export":
+            origin = "discrete export; DER data from the rest helix geometry"
+    return points, offsets, data, origin, arc
+

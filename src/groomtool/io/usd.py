@@ -29,11 +29,11 @@ from pxr import Gf, Sdf, Usd, UsdGeom, UsdPhysics, UsdUtils, Vt
 
 from ..groom import Groom, GroomError
 from ..material import Material
-from ..rods import superhelix as sh
 from ..version import __version__
 from . import fields
 from .atomic import atomic_path
-from .results import head_mesh, load_arrays, result_helix
+from .fields import consumer_rest_data, frames_to_quaternions, quaternions_to_frames, rod_polyline_data
+from .results import head_mesh, load_arrays
 from .validate import validate
 
 SCHEMA_VERSION = 2
@@ -42,7 +42,6 @@ EXACT = "groomtool:"  # exact (double / int) data as plain attributes groomtool:
 ENCODING_KEY = "groomtool:encoding"  # customData: "quaternion" for frames stored as quatf
 LAYOUT_KEY = "groomtool:layout"  # customData of per-vertex rod primvars: vertex | edge | interior
 SHAPE_KEY = "groomtool:shape"  # customData: trailing shape of matrix-valued primvars, e.g. [3, 3]
-ROD_PREFIXES = ("der_", "cosserat_", "node_")
 MATERIAL_KEYS = ("young_modulus", "shear_modulus", "radius", "density", "friction")
 # per-strand material arrays (S,) a result may carry; written as float primvars named after the
 # scalar they refine (strand_young_modulus -> primvars:groom:young_modulus), exact as groomtool:<key>
@@ -94,7 +93,7 @@ def build_stage(arrays: dict, per_element: int = 8, head=None) -> Usd.Stage:
     stage.SetDefaultPrim(root)
     samples = fields.sample(arrays, per_element)
     radius = float(arrays.get("radius", Material.radius))  # rest.npz before it held the radius
-    rod_points, rod_offsets, rod_data, origin, arc = _rod_data(arrays, samples)
+    rod_points, rod_offsets, rod_data, origin, arc = rod_polyline_data(arrays, samples)
     stage.GetRootLayer().customLayerData = {"groomtool": {
         "version": __version__, "schema_version": SCHEMA_VERSION, "up": up,
         "source": str(arrays.get("source", "")), "discrete_rest_data": origin}}
@@ -125,7 +124,7 @@ def build_stage(arrays: dict, per_element: int = 8, head=None) -> Usd.Stage:
     for key, (values, layout) in rod_data.items():
         _primvar(pv, key, _pad(values, layout, rod_offsets), UsdGeom.Tokens.vertex, layout=layout)
 
-    rest = _consumer_rest(arrays, rod_points, rod_offsets, arc, rod_data)
+    rest = consumer_rest_data(arrays, rod_points, rod_offsets, arc, rod_data)
     _write_consumer_rest(curves, rest)
     rest_curves = _curves(stage, REST, rest["points"], rod_offsets, radius, (0.2, 0.5, 0.9))
     rest_curves.CreatePurposeAttr(UsdGeom.Tokens.guide)
@@ -146,119 +145,6 @@ def _signed_up(arrays: dict) -> str:
         return "y"
     axis = int(np.argmax(np.abs(g)))
     return ("" if g[axis] < 0 else "-") + "xyz"[axis]
-
-
-# ------------------------------------------------------------------------------------- consumer rest data
-def _rest_arc(arrays: dict, points: np.ndarray, offsets: np.ndarray) -> np.ndarray:
-    """Helix arc length of the rod vertices: their polyline arc length scaled to the helix length
-    (as :func:`fields.der_rest_geometry` does)."""
-    arc = fields.polyline_arc(points, offsets)
-    counts = np.diff(offsets)
-    tips = arc[np.maximum(offsets[1:] - 1, 0)]
-    lengths = result_helix(arrays).strand_lengths
-    strand = np.repeat(np.arange(len(counts)), counts)
-    return arc * (lengths / np.where(tips > 0, tips, 1.0))[strand]
-
-
-def _edge_frames(points: np.ndarray, offsets: np.ndarray, helix_frames: np.ndarray) -> np.ndarray:
-    """(E, 3, 3) frames of the polyline's edges, rows (d1, d2, d3 = edge tangent): d1 the helix
-    frame's n1 at the edge midpoint made normal to the edge (docs/usd.md)."""
-    from ..rods.discrete import edge_start_vertices
-
-    e0 = edge_start_vertices(offsets)
-    t = points[e0 + 1] - points[e0]
-    t /= np.linalg.norm(t, axis=1)[:, None]
-    d1 = helix_frames[:, :, 1] - np.einsum("ij,ij->i", helix_frames[:, :, 1], t)[:, None] * t
-    d1 /= np.linalg.norm(d1, axis=1)[:, None]
-    return np.stack([d1, np.cross(t, d1), t], axis=1)
-
-
-def _per_vertex(edge_values: np.ndarray, offsets: np.ndarray, tip=None) -> np.ndarray:
-    """Edge values at vertices: edge j at its first vertex; each tip gets ``tip`` (default: the
-    value of the strand's last edge)."""
-    from ..rods.discrete import edge_start_vertices
-
-    e0 = edge_start_vertices(offsets)
-    out = np.empty((int(offsets[-1]),) + edge_values.shape[1:], dtype=edge_values.dtype)
-    out[e0] = edge_values
-    tips = offsets[1:] - 1
-    out[tips] = edge_values[np.searchsorted(e0, tips) - 1] if tip is None else tip
-    return out
-
-
-def frames_to_quaternions(frames: np.ndarray) -> np.ndarray:
-    """(n, 3, 3) frames with rows (d1, d2, d3) -> (n, 4) unit quaternions (x, y, z, w) of the
-    rotation taking the axes (X, Y, Z) to (d1, d2, d3), w >= 0."""
-    from scipy.spatial.transform import Rotation
-
-    if len(frames) == 0:
-        return np.zeros((0, 4))
-    q = Rotation.from_matrix(np.transpose(frames, (0, 2, 1))).as_quat()
-    return q * np.where(q[:, 3:] < 0, -1.0, 1.0)
-
-
-def quaternions_to_frames(q: np.ndarray) -> np.ndarray:
-    """Inverse of :func:`frames_to_quaternions`: (n, 4) (x, y, z, w) -> (n, 3, 3) rows (d1, d2, d3)."""
-    from scipy.spatial.transform import Rotation
-
-    if len(q) == 0:
-        return np.zeros((0, 3, 3))
-    return np.transpose(Rotation.from_quat(np.asarray(q, dtype=np.float64)).as_matrix(), (0, 2, 1))
-
-
-def _quat_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Hamilton products a b of (n, 4) quaternions (x, y, z, w)."""
-    av, aw, bv, bw = a[:, :3], a[:, 3:], b[:, :3], b[:, 3:]
-    return np.concatenate([aw * bv + bw * av + np.cross(av, bv),
-                           aw * bw - np.einsum("ij,ij->i", av, bv)[:, None]], axis=1)
-
-
-def _consumer_rest(arrays: dict, points: np.ndarray, offsets: np.ndarray, arc, rod_data: dict) -> dict:
-    """Per-vertex rest data of the Strands polyline (V vertices) as simulators name them.
-
-    points: the rest helices at the vertices' arc lengths; rotation: the rest frame of the edge
-    leaving each vertex (tip: its last edge's) as a quaternion; bend: q_i^-1 q_(i+1) (identity at
-    the last edge and the tip); length: the rest length of the edge leaving each vertex (der_rest_lengths
-    when the data have them; 0 at the tip); normal: d1 of the rest frame; orient: the groomed frame.
-    """
-    from ..rods.discrete import edge_start_vertices
-
-    counts = np.diff(offsets)
-    S = len(counts)
-    strand = np.repeat(np.arange(S), counts)
-    if arc is None:
-        arc = _rest_arc(arrays, points, offsets)
-    rest_helix = result_helix(arrays, rest=True)
-    rest_points, _ = sh.evaluate(rest_helix, strand, arc)
-    out = {"points": rest_points}
-    if np.any(counts < 2):
-        raise GroomError("USD rest data need strands of at least 2 vertices")
-    e0 = edge_start_vertices(offsets)
-    mid = 0.5 * (arc[e0] + arc[e0 + 1])
-    _, rest_helix_frames = sh.evaluate(rest_helix, strand[e0], mid)
-    rest_frames = _edge_frames(rest_points, offsets, rest_helix_frames)
-    if "cosserat_directors" in rod_data:
-        groomed = rod_data["cosserat_directors"][0]
-    elif "der_frames" in rod_data:
-        groomed = rod_data["der_frames"][0]
-    else:
-        _, fitted_frames = sh.evaluate(result_helix(arrays), strand[e0], mid)
-        groomed = _edge_frames(points, offsets, fitted_frames)
-    q_rest = frames_to_quaternions(rest_frames)
-    rotation = _per_vertex(q_rest, offsets)
-    out["rotation"] = rotation
-    out["normals"] = _per_vertex(rest_frames[:, 0], offsets)
-    nxt = np.minimum(np.arange(len(points)) + 1, len(points) - 1)
-    bend = _quat_multiply(rotation * [-1.0, -1.0, -1.0, 1.0], rotation[nxt])
-    bend[offsets[1:] - 1] = [0.0, 0.0, 0.0, 1.0]
-    out["bend_rotation"] = bend * np.where(bend[:, 3:] < 0, -1.0, 1.0)
-    if "der_rest_lengths" in rod_data:
-        lengths = rod_data["der_rest_lengths"][0]
-    else:
-        lengths = np.linalg.norm(rest_points[e0 + 1] - rest_points[e0], axis=1)
-    out["length"] = _per_vertex(np.asarray(lengths, dtype=np.float64), offsets, tip=0.0)
-    out["orient"] = _per_vertex(frames_to_quaternions(np.asarray(groomed, dtype=np.float64)), offsets)
-    return out
 
 
 def _write_consumer_rest(curves: UsdGeom.BasisCurves, rest: dict) -> None:
@@ -282,36 +168,6 @@ def _quat_primvar(pv: UsdGeom.PrimvarsAPI, name: str, q: np.ndarray) -> UsdGeom.
     primvar = pv.CreatePrimvar(name, Sdf.ValueTypeNames.QuatfArray, UsdGeom.Tokens.vertex)
     primvar.Set(Vt.QuatfArray.FromNumpy(np.ascontiguousarray(q, dtype=np.float32)))
     return primvar
-
-
-def _rod_data(arrays: dict, samples) -> tuple:
-    """Points, offsets, {key: (values, layout)}, origin and helix arc lengths (None: from the
-    polyline) of the discrete-rod polyline written as Strands.
-
-    With a discrete export (``rod_points``, ``rod_offsets`` and der_/cosserat_/node_ arrays) that
-    polyline and its arrays; without, the fitted helix samples.  DER data missing from the export
-    are computed from the rest helix (:func:`fields.der_rest_geometry`).
-    """
-    if "rod_points" in arrays and "rod_offsets" in arrays:
-        points = np.asarray(arrays["rod_points"], dtype=np.float64).reshape(-1, 3)
-        offsets = np.asarray(arrays["rod_offsets"], dtype=np.int64)
-        arc, origin = None, "discrete export"
-    else:
-        points, offsets, arc, origin = samples.points, samples.offsets, samples.arc, "rest helix geometry"
-    V, S = len(points), len(offsets) - 1
-    sizes = {V: "vertex", V - S: "edge", V - 2 * S: "interior"}
-    data = {}
-    for key, value in arrays.items():
-        value = np.asarray(value)
-        if key.startswith(ROD_PREFIXES) and value.dtype.kind in "fiub" and value.ndim >= 1 and S > 0:
-            if len(value) in sizes:
-                data[key] = (value, sizes[len(value)])
-    if not any(k.startswith("der_rest_") for k in data) and np.all(np.diff(offsets) >= 3):
-        for key, value in fields.der_rest_geometry(arrays, points, offsets, arc).items():
-            data[key] = (value, sizes[len(value)])
-        if origin == "discrete export":
-            origin = "discrete export; DER data from the rest helix geometry"
-    return points, offsets, data, origin, arc
 
 
 def _pad(values: np.ndarray, layout: str, offsets: np.ndarray) -> np.ndarray:
