@@ -30,6 +30,7 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 import argparse  # noqa: E402
 import json  # noqa: E402
 import platform  # noqa: E402
+import resource  # noqa: E402
 import sys  # noqa: E402
 import tempfile  # noqa: E402
 import time  # noqa: E402
@@ -185,17 +186,39 @@ def example_stages(outdir, steps: int, skin=None, cpu_time: bool = True) -> dict
                      "s_per_step_median": float(np.median(per)), "sweeps": sweeps, "contacts_mean": float(np.mean(contacts)),
                      "stages_s_per_step": {k: v / steps for k, v in sim.timings.items()},
                      "detection_passes": sim.tracker.passes if sim.tracker else 0,
-                     "max_tip_drift_m": float(np.linalg.norm(sim.tips() - tips0, axis=1).max())}
+                     "max_tip_drift_m": float(np.linalg.norm(sim.tips() - tips0, axis=1).max()),
+                     "modified_step_matrices_per_step": sim.modified_strands / (steps + 1),
+                     "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0}
     return out
+
+
+def timing_markdown(timings: dict) -> list[str]:
+    """Per-step CPU time of inversion output directories (--timing-dirs), both runs of groom check."""
+    lines = ["", "## Time per step of groom check's runs on inversion outputs (CPU time, steps after the first)", "",
+             "| groom | strands | elements | run | s/step mean (median) | contacts | GS sweeps | modified step "
+             "matrices per step | peak RSS (MB) | stages (s/step) |", "|---|---|---|---|---|---|---|---|---|---|"]
+    for name, t in timings.items():
+        for run in ("inverted", "naive"):
+            b = t.get(run)
+            if not b:
+                continue
+            stages = ", ".join(f"{k} {v:.3f}" for k, v in sorted(b["stages_s_per_step"].items(), key=lambda kv: -kv[1]))
+            sw = b["sweeps"]
+            lines.append(f"| {name} | {t['strands']} | {t['elements']} | {run} | {b['s_per_step_mean']:.3f} "
+                         f"({b['s_per_step_median']:.3f}) | {b['contacts_mean']:.0f} | {min(sw)}-{max(sw)} | "
+                         f"{b.get('modified_step_matrices_per_step', float('nan')):.0f} | "
+                         f"{b.get('peak_rss_mb', float('nan')):.0f} | {stages} |")
+    return lines
 
 
 def example_markdown(example, before=None) -> list[str]:
     lines = ["", "## The README example: stages per step of groom check's runs", "",
              f"{example['strands']} strands, {example['elements']} elements, contact radius 0.5 mm, all contacts; "
              f"{example['steps']} steps after the first per run (the first loads the kernels); OpenBLAS one thread; "
-             "**CPU time** (process_time: the machine was shared, load average 13-20 on 2 cores during these runs; "
-             "wall-clock times were 2-4x larger and noisy). 'before' is the code before issue 15's work (commit "
-             "695eb2a), 'after' this one, measured one after the other.", "",
+             "**CPU time** (process_time: the machine was shared with other jobs, load average 4-9 on 2 cores; "
+             "wall-clock times were 2-4x larger and noisy). "
+             + (f"'before' is {before.get('code', 'the previous code')}, " if before else "")
+             + f"'after' {example.get('code', 'this code')}, measured on the same machine under the same load.", "",
              "| code | run | s/step mean (median) | contacts | GS sweeps per step | stages (s/step) |", "|---|---|---|---|---|---|"]
     for label, ex in (("before", before), ("after", example)):
         if not ex:
@@ -209,7 +232,7 @@ def example_markdown(example, before=None) -> list[str]:
     return lines
 
 
-def markdown(rows, big, meta, example=None, before=None) -> str:
+def markdown(rows, big, meta, example=None, before=None, timings=None) -> str:
     lines = ["# groom check and forward simulation: benchmark", "",
              f"{meta['date']} on {meta['machine']} ({meta['cpus']} CPUs), Python {meta['python']}; "
              f"{meta['seconds']:g} s simulated at dt = 1/{round(1 / meta['dt'])} s; material: E = 3 GPa, r = 40 um, "
@@ -241,6 +264,8 @@ def markdown(rows, big, meta, example=None, before=None) -> str:
                          f"{b['modified_step_matrices_per_step']:.0f} | {stages} |")
     if example:
         lines += example_markdown(example, before)
+    if timings:
+        lines += timing_markdown(timings)
     return "\n".join(lines) + "\n"
 
 
@@ -260,6 +285,9 @@ def main(argv=None) -> int:
     ap.add_argument("--example-steps", type=int, default=12)
     ap.add_argument("--example-before", default=None,
                     help="a JSON of example_stages measured on the previous code, shown as 'before'")
+    ap.add_argument("--example-label", default=None, help="what the measured code is (e.g. a commit), in the table")
+    ap.add_argument("--timing-dirs", nargs="*", default=None, metavar="NAME=DIR",
+                    help="inversion output directories to time both runs of (steps: --steps), e.g. harolongo=out")
     args = ap.parse_args(argv)
     warnings.simplefilter("ignore")
     if not DATA.is_dir():
@@ -289,6 +317,14 @@ def main(argv=None) -> int:
     else:
         big = time_big_groom(n_big, args.steps) if n_big else None
     example = example_stages(args.example_dir, args.example_steps) if args.example_dir else previous.get("example")
+    if args.example_dir and args.example_label:
+        example["code"] = args.example_label
+    timings = dict(previous.get("timings") or {})
+    for spec in args.timing_dirs or []:
+        name, _, path = spec.partition("=")
+        timings[name] = example_stages(path, args.steps)
+        print(f"{name}: " + ", ".join(f"{run} {timings[name][run]['s_per_step_mean']:.2f} s/step"
+                                       for run in ("inverted", "naive")), flush=True)
     before = json.loads(Path(args.example_before).read_text()) if args.example_before else previous.get("example_before")
     if big and not args.keep_big:
         for name in ("inverted", "naive"):
@@ -304,9 +340,10 @@ def main(argv=None) -> int:
                "max_drift_ratio": max((r["drift_ratio"] for r in stable), default=0.0),
                "max_curly_curvature_change": max((r["inverted_curvature_change"] for r in stable if r["curly"]), default=0.0)}
     (RESULTS / "simulate.json").write_text(json.dumps({"meta": meta, "summary": summary, "styles": rows, "big": big,
-                                                       "example": example, "example_before": before},
+                                                       "example": example, "example_before": before,
+                                                       "timings": timings},
                                                       indent=2, default=float) + "\n")
-    (RESULTS / "simulate.md").write_text(markdown(rows, big, meta, example, before))
+    (RESULTS / "simulate.md").write_text(markdown(rows, big, meta, example, before, timings))
     print(json.dumps(summary, indent=2))
     return 0
 
