@@ -127,6 +127,37 @@ def test_errors_name_cli_flags(tmp_path, capsys):
     assert cli_message("x: load with repair=True to drop them") == "x: pass --repair to drop them"
 
 
+def test_repair_says_what_it_dropped_and_maps_strands_to_the_input(tmp_path, capsys):
+    """--repair: counts in the summary and report.json, input strand indices in rest.npz (strand 1 loses a
+    repeated point, strand 2 has two identical points only and is dropped)."""
+    import json
+
+    import numpy as np
+
+    t = np.linspace(0.0, 0.1, 10)
+    strands = [np.stack([0.01 * k + 0 * t, 0.1 - t, 0.002 * np.sin(40 * t)], axis=1) for k in range(4)]
+    strands[1] = np.insert(strands[1], 4, strands[1][4], axis=0)
+    strands.insert(2, np.array([[0.3, 0.3, 0.3], [0.3, 0.3, 0.3]]))
+    lines, v = [], 1
+    for p in strands:
+        lines += ["v %.9f %.9f %.9f" % tuple(q) for q in p]
+        lines.append("l " + " ".join(str(v + i) for i in range(len(p))))
+        v += len(p)
+    path = tmp_path / "rep.obj"
+    path.write_text("\n".join(lines) + "\n")
+    out = tmp_path / "out"
+    assert main(["invert", str(path), "--repair", "-o", str(out)]) == EXIT_OK
+    text = capsys.readouterr().out
+    assert "2 repeated points dropped from 2 strands (1, 2)" in text
+    assert "1 strand of fewer than 2 distinct points dropped (2)" in text
+    report = json.loads((out / "report.json").read_text())
+    assert report["repairs"] == {"dropped_points": 2, "deduplicated_strands": [1, 2], "dropped_strands": [2]}
+    with np.load(out / "rest.npz") as z:
+        assert z["input_strand"].tolist() == [0, 1, 3, 4]
+        first = z["root_positions"][2]
+    assert np.allclose(first, strands[3][0], atol=1e-9)  # output strand 2 is input strand 3
+
+
 def test_head_without_contacts_says_what_it_does(tmp_path, capsys):
     from groomtool.examples import write_example
 

@@ -186,6 +186,8 @@ def invert_groom(groom: Groom, head=None, params: InversionParams | None = None,
     timer = Timer()
     report: dict = {"input": groom.source, "up": groom.up, "material": material.as_dict(),
                     "gravity_m_s2": gravity.tolist()}
+    if "repairs" in groom.metadata:  # what load_groom(repair=True) dropped (input indices; rest.npz input_strand)
+        report["repairs"] = dict(groom.metadata["repairs"])
 
     if params.snap_roots and head is not None:
         from .contact.head import snap_roots  # contact (0.3 s): kept off the CLI's start

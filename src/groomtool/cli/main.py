@@ -283,6 +283,7 @@ def summary(result, written) -> str:
                          f"{f['iterations']} sweeps, then clarabel)")
     lines.append(f"  equilibrium  max relative residual {r['equilibrium']['max_relative_residual']:.2e}")
     lines += stability_lines(r["stability"])
+    lines += repair_lines(r.get("repairs"))
     if "roots" in r:
         lines.append(f"  roots        {r['roots']['mode']}: median gap {r['roots']['median_gap_m'] * 1e3:.2f} mm, "
                      f"max {r['roots']['max_gap_m'] * 1e3:.2f} mm")
@@ -291,6 +292,27 @@ def summary(result, written) -> str:
                  + ", ".join(f"{k} {v:.2f}" for k, v in r["timings_s"].items() if k != "total"))
     lines.append("  wrote        " + ", ".join(str(p) for p in written))
     return "\n".join(lines)
+
+
+def repair_lines(repairs: dict | None) -> list[str]:
+    """What --repair dropped, in input strand indices (rest.npz input_strand maps the output back)."""
+    if not repairs:
+        return []
+
+    def ids(values):
+        shown = ", ".join(str(v) for v in values[:10])
+        return shown + (f", ... ({len(values)} in all)" if len(values) > 10 else "")
+
+    def count(n, noun):
+        return f"{n} {noun}" + ("" if n == 1 else "s")
+
+    dedup, dropped = repairs["deduplicated_strands"], repairs["dropped_strands"]
+    lines = [f"  repaired     {count(repairs['dropped_points'], 'repeated point')} dropped from "
+             f"{count(len(dedup), 'strand')}" + (f" ({ids(dedup)})" if dedup else "")]
+    if dropped:
+        lines.append(f"               {count(len(dropped), 'strand')} of fewer than 2 distinct points dropped "
+                     f"({ids(dropped)}); rest.npz input_strand maps output strands to input ones")
+    return lines
 
 
 def stability_lines(st: dict) -> list[str]:

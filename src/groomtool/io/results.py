@@ -36,6 +36,13 @@ REQUIRED = ("strand_offsets", "element_lengths", "root_positions", "root_frames"
             "rest_curvatures")
 
 
+def input_strand_index(n_strands: int, repairs: dict | None) -> np.ndarray:
+    """For each output strand the index of its strand in the input file: the identity, except after
+    ``--repair`` dropped strands (io.validate: ``repairs["dropped_strands"]``, input indices)."""
+    dropped = np.asarray((repairs or {}).get("dropped_strands", []), dtype=np.int64)
+    return np.delete(np.arange(n_strands + len(dropped), dtype=np.int64), dropped)
+
+
 def result_arrays(result) -> dict:
     """The arrays of rest.npz (flat, unpadded, SI units)."""
     helix = result.helix
@@ -71,6 +78,7 @@ def result_arrays(result) -> dict:
     })
     if result.stiffness_ratio is not None:
         arrays["stiffness_ratio"] = np.asarray(result.stiffness_ratio, dtype=np.float64) / factor
+    arrays["input_strand"] = input_strand_index(helix.n_strands, result.groom.metadata.get("repairs"))
     c = result.contacts
     m = 0 if c is None else len(c.strand_a)
     arrays.update({
