@@ -2,12 +2,16 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
-import trimesh
 
 from ..groom import GroomError
 from .common import check_input, unit_scale
 from .head_validation import validate_head
+
+if TYPE_CHECKING:
+    import trimesh
 
 
 def load_head(path, units="m") -> trimesh.Trimesh:
@@ -16,6 +20,8 @@ def load_head(path, units="m") -> trimesh.Trimesh:
     non-finite vertices, absurd coordinates or only degenerate faces are errors; faces wound against
     their neighbours are reversed with a ``HeadWarning``.
     """
+    import trimesh  # 1.5 s with scipy.spatial: kept off the CLI's start (groomtool.io is imported there)
+
     scale = unit_scale(units)
     path = check_input(path)
     try:

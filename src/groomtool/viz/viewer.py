@@ -15,8 +15,6 @@ from pathlib import Path
 import numpy as np
 
 from ..groom import GroomError
-from ..io import fields
-from ..io.results import load_arrays, up_axis
 
 
 @dataclass(frozen=True)
@@ -94,6 +92,8 @@ def build_plotter(source, color: str = "curvature-change", rest: bool = False, h
     """
     import pyvista as pv
 
+    from ..io import fields  # io (0.2 s): this module is imported on the CLI's start for COLORS
+    from ..io.results import load_arrays, up_axis
     from ..io.vtp import head_polydata
 
     if color not in COLORS:
@@ -168,6 +168,8 @@ def _add_contacts(plotter, arrays: dict, samples, colouring=None, k: float = 1.0
     none below ARROW_MIN of it): small and dark grey, or coloured by force magnitude with
     ``colouring = (ColorBy, clim)``."""
     import pyvista as pv
+
+    from ..io import fields
 
     points = np.asarray(arrays.get("contact_points", np.zeros((0, 3))), dtype=np.float64).reshape(-1, 3)
     if len(points) == 0:
