@@ -158,6 +158,17 @@ def test_repair_says_what_it_dropped_and_maps_strands_to_the_input(tmp_path, cap
     assert np.allclose(first, strands[3][0], atol=1e-9)  # output strand 2 is input strand 3
 
 
+def test_format_usd_alone_leaves_a_directory_the_other_commands_read(tmp_path, capsys):
+    from groomtool.examples import write_example
+
+    groom_path, _ = write_example(tmp_path, n_strands=3, seed=4)
+    out = tmp_path / "o"
+    assert main(["invert", str(groom_path), "--format", "usd", "-q", "-o", str(out)]) == EXIT_OK
+    assert sorted(p.name for p in out.iterdir()) == ["groom.usdc", "report.json", "rest.npz"]
+    assert main(["export", str(out), "--format", "vtp", "-o", str(tmp_path / "g.vtp")]) == EXIT_OK
+    assert main(["info", str(out / "groom.usdc")]) == EXIT_OK
+
+
 def test_head_without_contacts_says_what_it_does(tmp_path, capsys):
     from groomtool.examples import write_example
 

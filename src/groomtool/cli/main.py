@@ -107,7 +107,8 @@ def build_parser() -> argparse.ArgumentParser:
                      help="no strand is made more than F x stiffer (default 100); strands that would need more "
                           "are named in the report")
     inv.add_argument("--format", action="append", choices=["npz", "obj", "json", "usd", "abc", "vtp", "hair"], default=None,
-                     help="output formats (repeatable; default npz, obj, json)")
+                     help="output formats (repeatable; default npz, obj, json); rest.npz and report.json are "
+                          "always written: check, view, simulate and export read them")
     add_material_options(inv)
     inv.add_argument("-q", "--quiet", action="store_true", help="no progress bars and no summary")
 
@@ -253,7 +254,8 @@ def cmd_invert(args) -> int:
         print(f"groom invert: {exc}; nothing was written", file=sys.stderr)
         return EXIT_NOT_CONVERGED
     result.report["input_units"] = args.units
-    formats = tuple(args.format) if args.format else ("npz", "obj", "json")
+    # rest.npz and report.json always: every other command reads the directory through them
+    formats = tuple(dict.fromkeys(("npz", "json") + tuple(args.format))) if args.format else ("npz", "obj", "json")
     extra = [f for f in formats if f in ("usd", "abc", "vtp", "hair")]
     written = write_result(result, args.output, formats=formats,
                            extra=(lambda stage: export_formats(result, stage, extra)) if extra else None)
