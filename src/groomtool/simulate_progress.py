@@ -1,7 +1,8 @@
 """Progress of a simulation run: a bar whose time estimate comes from measured steps only.
 
-The first step of a process may load or compile the numba kernels (seconds on a first run, before
-the cache exists): it is shown as such and left out of the estimate, which is the mean of the later
+The first step of a run loads (or, on a first run, compiles) the numba kernels and factorises every
+strand's step matrix from scratch (the unstable-mode corrections are kept for the later steps:
+minutes for thousands of long strands): it is shown as such and left out of the estimate, which is the mean of the later
 steps times the steps left (over every run still to come, e.g. groom check's two).  The estimate is
 printed once, after ``announce_after`` measured steps.
 """
@@ -53,7 +54,8 @@ class StepProgress:
         name, steps = self.runs[self.index]
         self.bar = tqdm(total=steps, desc=name, unit="step", leave=False, file=self.stream,
                         bar_format="{desc}: {percentage:3.0f}%|{bar}| {n_fmt}/{total_fmt} [{elapsed}{postfix}]")
-        self.bar.set_postfix_str("first step: loading kernels (compiled on a first run only)", refresh=True)
+        self.bar.set_postfix_str("first step: loading kernels (compiled on a first run only), first factorisations",
+                                 refresh=True)
 
     def step(self, seconds: float) -> None:
         if self.done_in_run > 0:
@@ -63,7 +65,8 @@ class StepProgress:
             return
         left = self.estimate_s()
         if left is None:
-            self.bar.set_postfix_str(f"first step {seconds:.1f} s (kernels loaded)", refresh=False)
+            self.bar.set_postfix_str(f"first step {seconds:.1f} s (kernels loaded, step matrices factorised)",
+                                     refresh=False)
         else:
             self.bar.set_postfix_str(f"{1e3 * sum(self.measured[-50:]) / len(self.measured[-50:]):.0f} ms/step, "
                                      f"~{_duration(left)} left", refresh=False)
