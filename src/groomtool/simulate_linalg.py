@@ -297,13 +297,13 @@ def _forward(L, b, n):
 
 @njit(cache=True)
 def _backward(L, y, n):
-    """x = L^-T y on the first n rows."""
-    x = np.empty(n)
+    """x = L^-T y on the first n rows (column i of L^T is row i of L: contiguous)."""
+    x = y[:n].copy()
     for i in range(n - 1, -1, -1):
-        acc = y[i]
-        for k in range(i + 1, n):
-            acc -= L[k, i] * x[k]
-        x[i] = acc / L[i, i]
+        xi = x[i] / L[i, i]
+        x[i] = xi
+        for k in range(i):
+            x[k] -= L[i, k] * xi
     return x
 
 
