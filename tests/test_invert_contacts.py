@@ -304,6 +304,22 @@ def test_an_unconverged_solve_warns_once_over_the_stabilisation_rounds(draped, s
     assert res.report["solve"]["status"] == "feasible"
 
 
+def test_stabilisation_rounds_restart_gauss_seidel_from_the_previous_forces(draped, sphere):
+    """A re-solve after stiffening starts from the last round's forces: fewer sweeps than the first solve,
+    to the same tolerance, and the same result as a cold re-solve with the final factors."""
+    groom, _ = draped
+    params = _params(solver="gs", solver_tolerance=1e-9, stabilize="stiffness")
+    res = invert_groom(groom, head=sphere, params=params)
+    history = res.report["stability"]["stabilization"]["history"]
+    assert len(history) >= 2 and res.report["solve"]["status"] == "solved"
+    assert all(h["solve_iterations"] < history[0]["solve_iterations"] for h in history[1:])
+    cold = invert_groom(groom, head=sphere, params=_params(solver="gs", solver_tolerance=1e-9, stabilize="none",
+                                                           stiffness_factor=res.stiffness_factor))
+    assert cold.report["solve"]["iterations"] > history[-1]["solve_iterations"]
+    scale = np.abs(cold.rest_curvatures).max()
+    assert np.abs(res.rest_curvatures - cold.rest_curvatures).max() <= 1e-6 * scale
+
+
 def test_q0_tolerance_stops_gauss_seidel_once_the_rest_curvatures_are_certified(draped, sphere):
     groom, ref = draped
     res = invert_groom(groom, head=sphere, params=_params(solver="gs", q0_tolerance=1e-4))

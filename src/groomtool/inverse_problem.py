@@ -210,12 +210,13 @@ def rest_curvature_error_bound(problem: InverseProblem, cp, r, u=None, line_sear
 
 
 def solve_inverse_problem(problem: InverseProblem, helix: sh.SuperHelix, params, quiet: bool = True,
-                          redundant_fraction: float = 1.0) -> dict:
+                          redundant_fraction: float = 1.0, initial_forces=None) -> dict:
     """Solve the scaled SOCQP with the chosen solver; forces returned in newtons (m, 3).  ``params``: the
     InversionParams (solver, solver_tolerance, max_iterations, q0_tolerance).  The progress bar counts
     Gauss-Seidel sweeps (clarabel's polish included) and shows the residual.  ``auto``: choose_solver; if
     its Gauss-Seidel does not converge on at most 10,000 contacts, clarabel takes over (report:
-    fallback_from)."""
+    fallback_from).  ``initial_forces`` (m, 3) in newtons, e.g. the previous stabilisation round's:
+    Gauss-Seidel starts from them (clarabel ignores them)."""
     from .solvers import solve_contact_problem  # the solvers (clarabel, 0.3 s): kept off the CLI's start
     from .solvers.gauss_seidel import projected_sweeps
 
@@ -258,6 +259,8 @@ def solve_inverse_problem(problem: InverseProblem, helix: sh.SuperHelix, params,
 
             # the sweep budget (and giving up on it early) is Gauss-Seidel's; clarabel keeps its own iteration limit
             gs_only = {} if method == "clarabel" else {"max_iter": params.max_iterations, "give_up": GS_GIVE_UP}
+            if method != "clarabel" and initial_forces is not None:
+                gs_only["r0"] = np.asarray(initial_forces, dtype=np.float64).reshape(-1) / problem.f_scale
             if method != "clarabel" and bounded and (params.q0_tolerance is not None or not quiet):
                 gs_only["stop"] = stop
             return solve_contact_problem(cp, law="soc", method=method, tol=params.solver_tolerance, callback=show,

@@ -259,7 +259,9 @@ def invert_groom(groom: Groom, head=None, params: InversionParams | None = None,
             with timer.stage("solve"):
                 problem = build_inverse_problem(helix, F, H, material, gravity, params.guess, params.gamma, mu_solve,
                                                 stiffness_factor=factor)
-                solve = solve_inverse_problem(problem, helix, params, quiet, redundant)
+                # a re-solve after stiffening starts from the previous round's forces
+                solve = solve_inverse_problem(problem, helix, params, quiet, redundant,
+                                              initial_forces=forces if rounds > 0 else None)
             forces = solve["forces"]
             report["solve"] = {k: v for k, v in solve.items() if k != "forces"}
             report["solve"]["objective"] = problem.objective(forces.ravel())
@@ -283,7 +285,8 @@ def invert_groom(groom: Groom, head=None, params: InversionParams | None = None,
             held = held_stability(helix, material, gravity, contacts, forces, H, mu, ratio, quiet)
         step = stiffening_step(held.ratio, factor, params.stability_margin, params.max_stiffness_factor)
         history.append({"unstable": int(np.count_nonzero(held.ratio >= factor)),
-                        "max_ratio": float(held.ratio.max()) if len(held.ratio) else 0.0})
+                        "max_ratio": float(held.ratio.max()) if len(held.ratio) else 0.0,
+                        "solve_iterations": int(report["solve"]["iterations"]) if contacts is not None else 0})
         if params.stabilize != "stiffness" or step is None or rounds >= MAX_ROUNDS:
             break
         history[-1]["raised"] = int(np.count_nonzero(step > factor))
