@@ -90,13 +90,8 @@ def test_no_import_circle_between_packages():
 
 def test_no_test_oracle_in_src():
     """Reference implementations that only tests use live in tests/reference/."""
-    # these two still hold reference twins (_contact_jacobian_reference, _kinematics_reference, ...) that are
-    # to move to tests/reference/ too (issue 18); every other module is clean
-    owned_elsewhere = {"contact/jacobian.py", "rods/superhelix.py"}
     names = []
     for path in SRC.rglob("*.py"):
-        if str(path.relative_to(SRC)) in owned_elsewhere:
-            continue
         for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
             if isinstance(node, (ast.FunctionDef, ast.ClassDef)) and (
                     node.name.endswith(("_reference", "_numpy")) or node.name.startswith("_reference")):

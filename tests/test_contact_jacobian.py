@@ -8,13 +8,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from groomtool.contact.jacobian import (
-    _contact_jacobian_reference,
-    _generalized_contact_force_reference,
-    contact_jacobian,
-    generalized_contact_force,
-)
+from groomtool.contact.jacobian import contact_jacobian, generalized_contact_force
 from groomtool.rods import superhelix as sh
+from reference.contact import contact_jacobian_reference, generalized_contact_force_reference
 
 
 def _helix(seed=0):
@@ -130,7 +126,7 @@ def _random_contacts(rng, helix, m):
 
 def _assert_same_as_reference(helix, contacts):
     H = contact_jacobian(helix, contacts)
-    ref = _contact_jacobian_reference(helix, contacts)
+    ref = contact_jacobian_reference(helix, contacts)
     assert isinstance(H, sp.csr_matrix)
     assert H.dtype == np.float64 and H.shape == ref.shape
     # sorted, duplicate-free columns in every row (checked from the arrays, not the cached flag)
@@ -168,7 +164,7 @@ def test_generalized_force_by_suffix_sums_equals_dense_reference(seed, scale, n_
     contacts = _random_contacts(rng, helix, m)
     r = rng.normal(size=(len(contacts.strand_a), 3))
     fast = generalized_contact_force(helix, contacts, r)
-    ref = _generalized_contact_force_reference(helix, contacts, r)
+    ref = generalized_contact_force_reference(helix, contacts, r)
     tol = 1e-12 * max(1.0, np.abs(ref).max())
     assert np.abs(fast - ref).max() <= tol
     via_h = helix.from_flat((contact_jacobian(helix, contacts).T @ r.ravel()).reshape(-1, 3))

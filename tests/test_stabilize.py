@@ -26,6 +26,7 @@ from groomtool.stability import contact_load_hessians, held_stiffness_ratios, st
 from groomtool.stabilize import stiffening_step
 
 from reference.grooms import random_helix
+from reference.rods import gravity_force_jacobian_reference
 from test_invert_contacts import SPHERE_R, _independent_cvxpy, _w_scale, draped_groom, draped_strand
 from test_invert_contacts import _params as _contact_params
 
@@ -116,7 +117,7 @@ def test_held_ratios_equal_a_dense_reference(draped):
     loaded = r[:, 0] > 0
     for s in np.flatnonzero(held.kind == 1):
         n = 3 * int(helix.n_elements[s])
-        dF = sh._gravity_force_jacobian_reference(helix.subset([s]), MAT.linear_density, g)[0, :n, :n]
+        dF = gravity_force_jacobian_reference(helix.subset([s]), MAT.linear_density, g)[0, :n, :n]
         on_a = loaded & (c.strand_a == s)
         on_b = loaded & (c.strand_b == s)
         arc = np.concatenate([c.s_a[on_a], c.s_b[on_b]])

@@ -6,6 +6,10 @@ tests that compare them (bit for bit).
   pairs, in hash order.
 * :func:`detect_head_contacts_reference`: :func:`groomtool.contact.head.detect_head_contacts` as it
   was before the distance bounds (every vertex in the head's inflated box queried).
+* :func:`contact_jacobian_reference`: :func:`groomtool.contact.jacobian.contact_jacobian` built from the
+  dense point Jacobians (:func:`groomtool.rods.superhelix.point_jacobians`) and filtered (O(m N) memory).
+* :func:`generalized_contact_force_reference`: :func:`groomtool.contact.jacobian.generalized_contact_force`
+  (H^T r) with the same dense point Jacobians.
 """
 
 from __future__ import annotations
@@ -14,11 +18,13 @@ import time
 
 import numba as nb
 import numpy as np
+import scipy.sparse as sp
 
 from groomtool.contact.detect import (HEAD, Contacts, SegmentPairs, _grow, _segment_params, _self_params,
                                       check_strands, merge_close, strand_segments)
 from groomtool.contact.frames import contact_frames
 from groomtool.contact.head import _GOLDEN, HeadSurface, _signed_point, as_head_surface
+from groomtool.rods import superhelix as sh
 
 
 # ------------------------------------------------------- strand/strand: segment-level spatial hash
@@ -356,3 +362,63 @@ def detect_head_contacts_reference(points, offsets, arc, head, radius: float, *,
     return Contacts(strand, s_a, np.full(len(v), HEAD), np.full(len(v), np.nan), point_a, closest, normal, frame,
                     dist, radius)
 
+
+# ------------------------------------------------------- H and H^T r by dense point Jacobians
+def _side_entries(helix, kin, strand, s, frames, sign, dof_offsets):
+    """(rows, columns, values) of one side's blocks sign F_i J_k, k <= the element of the point."""
+    J, elem = sh.point_jacobians(helix, strand, s, kin)  # (P, N, 3, 3)
+    blocks = sign * np.einsum("pij,pkjb->pkib", frames, J)  # (P, N, 3 rows, 3 dofs)
+    P, N = J.shape[:2]
+    k = np.arange(N)
+    keep = k[None, :] <= elem[:, None]  # only upstream elements move the point
+    pi, ki = np.nonzero(keep)
+    vals = blocks[pi, ki]  # (nnzb, 3, 3)
+    rows = 3 * pi[:, None, None] + np.arange(3)[None, :, None]
+    cols = 3 * (dof_offsets[strand[pi]] + ki)[:, None, None] + np.arange(3)[None, None, :]
+    rows, cols = np.broadcast_arrays(rows, cols)
+    return rows.ravel(), cols.ravel(), vals.ravel()
+
+
+def contact_jacobian_reference(helix: sh.SuperHelix, contacts, kin: sh.Kinematics | None = None) -> sp.csr_matrix:
+    """The original dense-then-filter H (via :func:`sh.point_jacobians`, O(m N) memory)."""
+    kin = kin if kin is not None else sh.kinematics(helix)
+    dof_offsets = helix.flat_offsets()
+    n_dofs = 3 * int(dof_offsets[-1])
+    m = len(contacts.strand_a)
+    if m == 0:
+        return sp.csr_matrix((0, n_dofs))
+    frames = np.asarray(contacts.frame, dtype=np.float64)
+    r_a, c_a, v_a = _side_entries(helix, kin, np.asarray(contacts.strand_a), np.asarray(contacts.s_a),
+                                  frames, 1.0, dof_offsets)
+    other = np.flatnonzero(np.asarray(contacts.strand_b) >= 0)
+    parts_r, parts_c, parts_v = [r_a], [c_a], [v_a]
+    if len(other):
+        r_b, c_b, v_b = _side_entries(helix, kin, np.asarray(contacts.strand_b)[other],
+                                      np.asarray(contacts.s_b)[other], frames[other], -1.0, dof_offsets)
+        # rows were numbered within the subset: map back to the contact's own rows
+        r_b = 3 * other[r_b // 3] + r_b % 3
+        parts_r.append(r_b)
+        parts_c.append(c_b)
+        parts_v.append(v_b)
+    H = sp.coo_matrix((np.concatenate(parts_v), (np.concatenate(parts_r), np.concatenate(parts_c))),
+                      shape=(3 * m, n_dofs))
+    return H.tocsr()
+
+
+def generalized_contact_force_reference(helix: sh.SuperHelix, contacts, forces: np.ndarray,
+                                         kin: sh.Kinematics | None = None) -> np.ndarray:
+    """H^T r with the dense (P, N, 3, 3) point Jacobians of sh.point_jacobians."""
+    kin = kin if kin is not None else sh.kinematics(helix)
+    out = np.zeros(helix.curvatures.shape)
+    frames = np.asarray(contacts.frame, dtype=np.float64)
+    world = np.einsum("pji,pj->pi", frames, np.asarray(forces, dtype=np.float64))
+    for strand, s, f in ((contacts.strand_a, contacts.s_a, world),
+                         (contacts.strand_b, contacts.s_b, -world)):
+        strand = np.asarray(strand)
+        mask = strand >= 0
+        if not np.any(mask):
+            continue
+        J, _ = sh.point_jacobians(helix, strand[mask], np.asarray(s)[mask], kin)
+        gen = np.einsum("pkab,pa->pkb", J, f[mask])
+        np.add.at(out, strand[mask], gen)
+    return out

@@ -3,7 +3,7 @@ chunked, compiled ones replaced, for the tests that compare them (to round-off).
 
 * :func:`equilibrium_residuals_reference`: :func:`groomtool.inverse_problem.equilibrium_residuals` as it was
   (kinematics twice, the second time padded to the longest strand), with the dense point-Jacobian
-  H^T r of contact.jacobian's reference.
+  H^T r of reference.contact.generalized_contact_force_reference.
 * :func:`stiffness_ratios_reference`: :func:`groomtool.stability.stiffness_ratios` by batched
   eigvalsh of the padded dense matrices.
 """
@@ -13,10 +13,11 @@ from __future__ import annotations
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from groomtool.contact.jacobian import _generalized_contact_force_reference
 from groomtool.inverse_problem import gravity_force
 from groomtool.material import Material
 from groomtool.rods import superhelix as sh
+from reference.contact import generalized_contact_force_reference
+from reference.rods import gravity_force_jacobian_reference
 
 
 def equilibrium_residuals_reference(helix: sh.SuperHelix, rest_curvatures, material: Material, gravity,
@@ -27,7 +28,7 @@ def equilibrium_residuals_reference(helix: sh.SuperHelix, rest_curvatures, mater
     K = sh.stiffness(helix, material.stiffness_diag)
     res = K * (helix.curvatures - rest_curvatures) - F
     if contacts is not None and forces is not None and len(forces):
-        res -= _generalized_contact_force_reference(helix, contacts, forces)
+        res -= generalized_contact_force_reference(helix, contacts, forces)
     num = np.linalg.norm(res.reshape(helix.n_strands, -1), axis=1)
     den = np.linalg.norm(F.reshape(helix.n_strands, -1), axis=1)
     return num / np.maximum(den, np.finfo(float).tiny)
@@ -49,7 +50,7 @@ def stiffness_ratios_reference(helix: sh.SuperHelix, stiffness_diag, linear_dens
 
 
 def _ratios(helix, stiffness_diag, linear_density, gravity):
-    dF = sh._gravity_force_jacobian_reference(helix, linear_density, gravity)
+    dF = gravity_force_jacobian_reference(helix, linear_density, gravity)
     K = sh.stiffness(helix, stiffness_diag).reshape(helix.n_strands, -1)
     K = np.where(K > 0, K, 1.0)  # padding dofs: dF is zero there, any K works
     scale = 1.0 / np.sqrt(K)

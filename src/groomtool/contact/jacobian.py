@@ -130,46 +130,6 @@ def _fill_csr(strand_a, elem_a, x_a, own_a, strand_b, elem_b, x_b, own_b, frames
                       data, indices)
 
 
-def _side_entries(helix, kin, strand, s, frames, sign, dof_offsets):
-    J, elem = sh.point_jacobians(helix, strand, s, kin)  # (P, N, 3, 3)
-    blocks = sign * np.einsum("pij,pkjb->pkib", frames, J)  # (P, N, 3 rows, 3 dofs)
-    P, N = J.shape[:2]
-    k = np.arange(N)
-    keep = k[None, :] <= elem[:, None]  # only upstream elements move the point
-    pi, ki = np.nonzero(keep)
-    vals = blocks[pi, ki]  # (nnzb, 3, 3)
-    rows = 3 * pi[:, None, None] + np.arange(3)[None, :, None]
-    cols = 3 * (dof_offsets[strand[pi]] + ki)[:, None, None] + np.arange(3)[None, None, :]
-    rows, cols = np.broadcast_arrays(rows, cols)
-    return rows.ravel(), cols.ravel(), vals.ravel()
-
-
-def _contact_jacobian_reference(helix: sh.SuperHelix, contacts, kin: sh.Kinematics | None = None) -> sp.csr_matrix:
-    """The original dense-then-filter H (via :func:`sh.point_jacobians`, O(m N) memory): tests only."""
-    kin = kin if kin is not None else sh.kinematics(helix)
-    dof_offsets = helix.flat_offsets()
-    n_dofs = 3 * int(dof_offsets[-1])
-    m = len(contacts.strand_a)
-    if m == 0:
-        return sp.csr_matrix((0, n_dofs))
-    frames = np.asarray(contacts.frame, dtype=np.float64)
-    r_a, c_a, v_a = _side_entries(helix, kin, np.asarray(contacts.strand_a), np.asarray(contacts.s_a),
-                                  frames, 1.0, dof_offsets)
-    other = np.flatnonzero(np.asarray(contacts.strand_b) >= 0)
-    parts_r, parts_c, parts_v = [r_a], [c_a], [v_a]
-    if len(other):
-        r_b, c_b, v_b = _side_entries(helix, kin, np.asarray(contacts.strand_b)[other],
-                                      np.asarray(contacts.s_b)[other], frames[other], -1.0, dof_offsets)
-        # rows were numbered within the subset: map back to the contact's own rows
-        r_b = 3 * other[r_b // 3] + r_b % 3
-        parts_r.append(r_b)
-        parts_c.append(c_b)
-        parts_v.append(v_b)
-    H = sp.coo_matrix((np.concatenate(parts_v), (np.concatenate(parts_r), np.concatenate(parts_c))),
-                      shape=(3 * m, n_dofs))
-    return H.tocsr()
-
-
 def generalized_contact_force(helix: sh.SuperHelix, contacts, forces: np.ndarray,
                               kin: sh.Kinematics | None = None) -> np.ndarray:
     """H^T r from the point forces, without H: (S, N, 3), in O(S N + m) time and memory.
@@ -182,8 +142,8 @@ def generalized_contact_force(helix: sh.SuperHelix, contacts, forces: np.ndarray
         Q_k = D_k^T R_k^T F_{>k} + Theta_k^T (M_{>k} - C_{k+1} x F_{>k}) + sum over the points p on
               element k of own_p^T f_p.
 
-    (The equilibrium check uses this; it never builds H.  _generalized_contact_force_reference is the
-    dense point-Jacobian version the tests compare with.)
+    (The equilibrium check uses this; it never builds H.  tests/reference/contact.py has the dense
+    point-Jacobian version the tests compare with.)
     """
     kin = kin if kin is not None else sh.kinematics(helix)
     frames = np.asarray(contacts.frame, dtype=np.float64).reshape(-1, 3, 3)
@@ -254,22 +214,3 @@ def _generalized_force_kernel(strand, elem, x, own, f, C, R, D, Theta, n_element
             M0 += moment[k, j, 0]
             M1 += moment[k, j, 1]
             M2 += moment[k, j, 2]
-
-
-def _generalized_contact_force_reference(helix: sh.SuperHelix, contacts, forces: np.ndarray,
-                                         kin: sh.Kinematics | None = None) -> np.ndarray:
-    """H^T r with the dense (P, N, 3, 3) point Jacobians of sh.point_jacobians: tests only."""
-    kin = kin if kin is not None else sh.kinematics(helix)
-    out = np.zeros(helix.curvatures.shape)
-    frames = np.asarray(contacts.frame, dtype=np.float64)
-    world = np.einsum("pji,pj->pi", frames, np.asarray(forces, dtype=np.float64))
-    for strand, s, f in ((contacts.strand_a, contacts.s_a, world),
-                         (contacts.strand_b, contacts.s_b, -world)):
-        strand = np.asarray(strand)
-        mask = strand >= 0
-        if not np.any(mask):
-            continue
-        J, _ = sh.point_jacobians(helix, strand[mask], np.asarray(s)[mask], kin)
-        gen = np.einsum("pkab,pa->pkb", J, f[mask])
-        np.add.at(out, strand[mask], gen)
-    return out

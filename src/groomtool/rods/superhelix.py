@@ -70,35 +70,6 @@ def _psi_apply_jacobian(beta, dbeta, gamma, dgamma, omega, z, v):
     return jac
 
 
-def _psi_form_hessian(beta, dbeta, ddbeta, gamma, dgamma, ddgamma, omega, z, u, v):
-    """Hessian in omega of h = u . (alpha I + beta(z) W + gamma(z) W^2) v; (..., 3, 3).
-
-    h = alpha c0 + beta (w . c1) + gamma (P - z c0), c0 = u.v, c1 = v x u, P = (u.w)(v.w).
-    """
-    c0 = np.einsum("...i,...i->...", u, v)
-    c1 = np.cross(v, u)
-    uw = np.einsum("...i,...i->...", u, omega)
-    vw = np.einsum("...i,...i->...", v, omega)
-    wc1 = np.einsum("...i,...i->...", omega, c1)
-    P = uw * vw
-    grad_p = u * vw[..., None] + v * uw[..., None]
-    g = grad_p - 2.0 * c0[..., None] * omega
-    eye = np.eye(3)
-    ww = omega[..., :, None] * omega[..., None, :]
-
-    def s(a):
-        return a[..., None, None]
-
-    hess = s(4.0 * ddbeta * wc1) * ww
-    hess += s(2.0 * dbeta) * (omega[..., :, None] * c1[..., None, :] + c1[..., :, None] * omega[..., None, :])
-    hess += s(2.0 * dbeta * wc1) * eye
-    hess += s(4.0 * ddgamma * (P - z * c0)) * ww
-    hess += s(2.0 * dgamma) * (omega[..., :, None] * g[..., None, :] + g[..., :, None] * omega[..., None, :])
-    hess += s(2.0 * dgamma * (P - z * c0)) * eye
-    hess += s(gamma) * (u[..., :, None] * v[..., None, :] + v[..., :, None] * u[..., None, :] - 2.0 * s(c0) * eye)
-    return hess
-
-
 def local_position(t: np.ndarray, omega: np.ndarray) -> np.ndarray:
     """p(t) = int_0^t exp(tau [omega]x) e0 dtau: the centreline in the element's start frame."""
     z = np.einsum("...i,...i->...", omega, omega)
@@ -229,7 +200,7 @@ class Kinematics:
 def kinematics(helix: SuperHelix) -> Kinematics:
     """Node frames and positions by the recursion R_{j+1} = R_j Q_j, C_{j+1} = C_j + R_j p_j, with the
     per-element closed forms (module docstring) evaluated in one compiled pass (:func:`_element_kernel`;
-    the vectorised :func:`_kinematics_reference` is kept for the tests)."""
+    tests/reference/rods.py has the vectorised numpy version the tests compare with)."""
     l = np.ascontiguousarray(helix.lengths, dtype=np.float64)
     w = np.ascontiguousarray(helix.curvatures, dtype=np.float64)
     S, N = l.shape
@@ -248,30 +219,6 @@ def kinematics(helix: SuperHelix) -> Kinematics:
     _chain(np.ascontiguousarray(helix.root_positions), np.ascontiguousarray(helix.root_frames), Q, p, C, R)
     Theta = np.empty((S, N, 3, 3))
     _theta_kernel(R, psi1, Theta)
-    return Kinematics(helix, C, R, Q, p, P, D, DP, Theta, c, dc, z)
-
-
-def _kinematics_reference(helix: SuperHelix) -> Kinematics:
-    """The same quantities with vectorised numpy (the reference for :func:`kinematics`)."""
-    l = helix.lengths
-    w = helix.curvatures
-    S, N = l.shape
-    z = np.einsum("snk,snk->sn", w, w)
-    c, dc, _ = c_table(l, z, order=1)
-    W = skew(w)
-    Q = np.eye(3) + c[1][..., None, None] * W + c[2][..., None, None] * (W @ W)
-    psi1 = l[..., None, None] * np.eye(3) + c[2][..., None, None] * W + c[3][..., None, None] * (W @ W)
-    e0 = np.broadcast_to(E0, w.shape)
-    p = psi1[..., :, 0]
-    P = _psi_apply(0.5 * l * l, c[3], c[4], w, z, e0)
-    D = _psi_apply_jacobian(c[2], dc[2], c[3], dc[3], w, z, e0)
-    DP = _psi_apply_jacobian(c[3], dc[3], c[4], dc[4], w, z, e0)
-
-    C = np.empty((S, N + 1, 3))
-    R = np.empty((S, N + 1, 3, 3))
-    _chain(np.ascontiguousarray(helix.root_positions), np.ascontiguousarray(helix.root_frames),
-           np.ascontiguousarray(Q), np.ascontiguousarray(p), C, R)
-    Theta = R[:, :-1] @ psi1
     return Kinematics(helix, C, R, Q, p, P, D, DP, Theta, c, dc, z)
 
 
@@ -621,7 +568,8 @@ def gravity_force_jacobian_parts(helix: SuperHelix, linear_density: float, gravi
 
 @njit(cache=True)
 def _form_hessian_add(k, beta, dbeta, ddbeta, gamma, dgamma, ddgamma, w, z, u, v, out):
-    """out += k * the Hessian in omega of u . (alpha I + beta(z) W + gamma(z) W^2) v (:func:`_psi_form_hessian`)."""
+    """out += k * the Hessian in omega of u . (alpha I + beta(z) W + gamma(z) W^2) v (the vectorised form is
+    tests/reference/rods.py's psi_form_hessian)."""
     c0 = u[0] * v[0] + u[1] * v[1] + u[2] * v[2]
     c1 = (v[1] * u[2] - v[2] * u[1], v[2] * u[0] - v[0] * u[2], v[0] * u[1] - v[1] * u[0])
     uw = u[0] * w[0] + u[1] * w[1] + u[2] * w[2]
@@ -730,37 +678,6 @@ def _assemble_gravity_jacobian(U, G, diag, out):
                 for k in range(r + 1, N):
                     for b in range(3):
                         out[s, row, 3 * k + b] = u0 * G[s, k, 0, b] + u1 * G[s, k, 1, b] + u2 * G[s, k, 2, b]
-
-
-def _gravity_force_jacobian_reference(helix: SuperHelix, linear_density: float, gravity,
-                                     kin: Kinematics | None = None):
-    """dF/dq assembled with dense batched matmuls (the original :func:`gravity_force_jacobian`): tests only."""
-    kin = kin if kin is not None else kinematics(helix)
-    g = np.asarray(gravity, dtype=np.float64)
-    S, N = helix.lengths.shape
-    G, m, X = _integrated_jacobians(helix, kin)
-    gx = skew(g)
-    # off-diagonal blocks, j < k: -rhoS Theta_j^T [g]x G_k, all (j, k) at once as one batched matmul
-    left = np.einsum("sjba,bc->sjac", kin.Theta, gx).reshape(S, 3 * N, 3)  # rows (j, a): Theta_j^T [g]x
-    right = G.transpose(0, 2, 1, 3).reshape(S, 3, 3 * N)  # columns (k, d): G_k
-    block_row = np.repeat(np.arange(N), 3)
-    upper = block_row[:, None] < block_row[None, :]
-    full = (-linear_density * (left @ right)) * upper
-    full += np.swapaxes(full, 1, 2)  # the lower blocks by symmetry
-    # diagonal blocks
-    w = helix.curvatures
-    z = kin.z
-    c, dc, ddc = c_table(helix.lengths, z, order=2)
-    u = np.einsum("snba,b->sna", kin.R[:, :-1], g)  # R_j^T g
-    Y = np.einsum("snba,snb->sna", kin.R[:, 1:], X)  # R_{j+1}^T X_{j+1}
-    e0 = np.broadcast_to(E0, w.shape)
-    diag = _psi_form_hessian(c[3], dc[3], ddc[3], c[4], dc[4], ddc[4], w, z, u, e0)
-    diag += m[..., None, None] * _psi_form_hessian(c[2], dc[2], ddc[2], c[3], dc[3], ddc[3], w, z, u, e0)
-    diag += _psi_form_hessian(c[1], dc[1], ddc[1], c[2], dc[2], ddc[2], w, z, u, Y)
-    view = full.reshape(S, N, 3, N, 3)
-    idx = np.arange(N)
-    view[:, idx, :, idx, :] = linear_density * diag.transpose(1, 0, 2, 3)
-    return full
 
 
 def mass_matrix(helix: SuperHelix, linear_density: float, kin: Kinematics | None = None, order: int = 4):
