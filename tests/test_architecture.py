@@ -1,5 +1,6 @@
 """The package's layout: no import circle between its modules, nor between its packages (function-local
-imports included), and no test oracle left in src (docs/architecture.md)."""
+imports included), no test oracle left in src, and no underscore name imported from another package
+(docs/architecture.md)."""
 
 import ast
 from pathlib import Path
@@ -97,3 +98,28 @@ def test_no_test_oracle_in_src():
                     node.name.endswith(("_reference", "_numpy")) or node.name.startswith("_reference")):
                 names.append(f"{path.relative_to(SRC)}:{node.name}")
     assert names == []
+
+
+def test_no_private_import_across_packages():
+    """A module imports another package's underscore names only through its public API."""
+    def package(name):
+        return ".".join(name.split(".")[:2])
+
+    mods = _modules()
+    found = []
+    for name, path in mods.items():
+        pkg = name if path.name == "__init__.py" else name.rsplit(".", 1)[0]
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if not isinstance(node, ast.ImportFrom):
+                continue
+            if node.level:
+                base = pkg.split(".")[:len(pkg.split(".")) - node.level + 1]
+                target = ".".join(base + ([node.module] if node.module else []))
+            else:
+                target = node.module or ""
+            if not target.startswith("groomtool"):
+                continue
+            for alias in node.names:
+                if alias.name.startswith("_") and not alias.name.startswith("__") and package(target) != package(name):
+                    found.append(f"{name}: from {target} import {alias.name}")
+    assert found == []

@@ -71,7 +71,7 @@ def equilibrium_residuals(helix: sh.SuperHelix, rest_curvatures, material: Mater
     """||K (q - q0) - F - H^T r|| / ||F|| per strand (K with the per-strand ``stiffness_factor``), recomputed
     from scratch (fresh kinematics, H^T r point by point), independent of how q0 was obtained.  In chunks of
     strands of similar length, each chunk's kinematics serving both F and H^T r."""
-    from .contact.jacobian import _point_forces_generalized  # contact (0.3 s): kept off the CLI's start
+    from .contact.jacobian import point_forces_generalized  # contact (0.3 s): kept off the CLI's start
 
     S = helix.n_strands
     F = np.zeros(helix.curvatures.shape)
@@ -104,7 +104,7 @@ def equilibrium_residuals(helix: sh.SuperHelix, rest_curvatures, material: Mater
         F[ids, :n] = sh.gravity_force(sub, material.linear_density, gravity, kin)
         if HtR is not None:
             mine = by_chunk[bounds[c]:bounds[c + 1]]
-            HtR[ids, :n] = _point_forces_generalized(sub, kin, local[strand[mine]], arc[mine], point_force[mine])
+            HtR[ids, :n] = point_forces_generalized(sub, kin, local[strand[mine]], arc[mine], point_force[mine])
     K = strand_stiffness(helix, material, stiffness_factor)
     res = K * (helix.curvatures - rest_curvatures) - F
     if HtR is not None:

@@ -458,11 +458,11 @@ def contact_load_hessians(helix: sh.SuperHelix, strands, point_strand, point_s, 
     """d(J^T f)/dq per listed strand (dense n x n, n = 3 N_s): the stiffness of the world point loads
     f_p at arc lengths s_p held fixed (dead loads), i.e. the Hessian of sum_p f_p . C(s_p; q).
 
-    Central differences of the exact generalized force (contact.jacobian._point_forces_generalized) with
+    Central differences of the exact generalized force (contact.jacobian.point_forces_generalized) with
     a step of ``rotation_step`` radians per element (dq_j = rotation_step / l_j): truncation O(step^2) and
     round-off O(eps / step), about 1e-10 relative; symmetrised (it is a Hessian).  Strands are batched so
     that at most ``chunk_dofs`` perturbed copies are built at once."""
-    from .contact.jacobian import _point_forces_generalized
+    from .contact.jacobian import point_forces_generalized
 
     strands = np.asarray(strands, dtype=np.int64)
     point_strand = np.asarray(point_strand, dtype=np.int64)
@@ -499,7 +499,7 @@ def contact_load_hessians(helix: sh.SuperHelix, strands, point_strand, point_s, 
         first = np.repeat(lo[owner], count)
         within = np.arange(len(copy_of_point)) - np.repeat(np.cumsum(count) - count, count)
         pidx = first + within
-        g = _point_forces_generalized(copies_helix, sh.kinematics(copies_helix), copy_of_point, pss[pidx], pf[pidx])
+        g = point_forces_generalized(copies_helix, sh.kinematics(copies_helix), copy_of_point, pss[pidx], pf[pidx])
         g = g.reshape(len(owner), 3 * N)
         pos = 0
         for i in range(len(ids)):

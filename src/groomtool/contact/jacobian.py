@@ -152,11 +152,13 @@ def generalized_contact_force(helix: sh.SuperHelix, contacts, forces: np.ndarray
                              np.asarray(contacts.strand_b, dtype=np.int64)])
     s = np.concatenate([np.asarray(contacts.s_a, dtype=np.float64), np.asarray(contacts.s_b, dtype=np.float64)])
     keep = strand >= 0
-    return _point_forces_generalized(helix, kin, strand[keep], s[keep], np.concatenate([world, -world])[keep])
+    return point_forces_generalized(helix, kin, strand[keep], s[keep], np.concatenate([world, -world])[keep])
 
 
-def _point_forces_generalized(helix: sh.SuperHelix, kin: sh.Kinematics, strand, s, f) -> np.ndarray:
-    """sum_p (dC(s_p)/dq)^T f_p for world point forces f_p at arc lengths s_p on ``strand``: (S, N, 3)."""
+def point_forces_generalized(helix: sh.SuperHelix, kin: sh.Kinematics, strand, s, f) -> np.ndarray:
+    """The generalised force of world point forces: Q = sum_p (dC(s_p)/dq)^T f_p, (S, N, 3), for forces f_p
+    (P, 3) at arc lengths s_p on strands ``strand`` (P,), by the suffix sums of
+    :func:`generalized_contact_force` in O(S N + P)."""
     S, N = helix.curvatures.shape[:2]
     out = np.zeros((S, N, 3))
     if len(strand):
