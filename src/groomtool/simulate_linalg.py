@@ -90,7 +90,11 @@ class StepCorrections:
                 start[s] = offset
                 parts.append(self.blocks[s].ravel())
                 offset += self.blocks[s].size
-            self._packed = (np.concatenate(parts) if parts else np.zeros(0), start)
+            data = np.concatenate(parts) if parts else np.zeros(0)
+            for s in self.blocks:  # views into the packed buffer: the corrections are held once
+                n = self.blocks[s].shape[0]
+                self.blocks[s] = data[start[s]:start[s] + n * n].reshape(n, n)
+            self._packed = (data, start)
         return self._packed
 
 
