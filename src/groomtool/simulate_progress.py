@@ -32,10 +32,6 @@ class StepProgress:
         self.t0 = time.perf_counter()
         self._open()
 
-    @property
-    def total_steps(self) -> int:
-        return sum(n for _, n in self.runs)
-
     def steps_left(self) -> int:
         return sum(n for _, n in self.runs[self.index:]) - self.done_in_run
 

@@ -1,7 +1,8 @@
 """Sparse 3x3-block storage of the Delassus operator, and of H / HD per contact.
 
-BlockDelassus: W in block-CSR (every block row stores all its blocks, both triangles, so a sweep reads
-one contiguous row): W_ij != 0 only when contacts i and j share a strand.
+UpperBlockDelassus: W's upper block triangle (W_ij != 0 only when contacts i and j share a strand), the
+form Gauss-Seidel and APGD multiply by (upper_block_matvec); from a scipy matrix through BlockDelassus (all
+blocks, both triangles, in block-CSR), or strand by strand from a ContactProblem (assemble_upper).
 
 PackedRows: a (3m, n) sparse matrix regrouped per contact: the union of the columns its three rows
 touch, and a (k, 3) value panel, so one index load serves the normal and both tangent rows.
@@ -17,26 +18,6 @@ from numba import njit
 
 # numba fastmath flags: fused multiply-add only (IEEE semantics otherwise)
 _FM = {"contract"}
-
-
-@njit(cache=True, fastmath=_FM)
-def block_matvec(indptr, indices, blocks, r, b, out):
-    """out_i = sum_j W_ij r_j + b_i (block-CSR W, r/b/out: (m, 3))."""
-    for i in range(indptr.shape[0] - 1):
-        u0 = b[i, 0]
-        u1 = b[i, 1]
-        u2 = b[i, 2]
-        for p in range(indptr[i], indptr[i + 1]):
-            j = indices[p]
-            x0 = r[j, 0]
-            x1 = r[j, 1]
-            x2 = r[j, 2]
-            u0 += blocks[p, 0, 0] * x0 + blocks[p, 0, 1] * x1 + blocks[p, 0, 2] * x2
-            u1 += blocks[p, 1, 0] * x0 + blocks[p, 1, 1] * x1 + blocks[p, 1, 2] * x2
-            u2 += blocks[p, 2, 0] * x0 + blocks[p, 2, 1] * x1 + blocks[p, 2, 2] * x2
-        out[i, 0] = u0
-        out[i, 1] = u1
-        out[i, 2] = u2
 
 
 @dataclass
@@ -68,26 +49,6 @@ class BlockDelassus:
     @property
     def n_contacts(self) -> int:
         return self.indptr.shape[0] - 1
-
-    @property
-    def nbytes(self) -> int:
-        return self.indptr.nbytes + self.indices.nbytes + self.blocks.nbytes
-
-    def diagonal(self) -> np.ndarray:
-        """(m, 3, 3) diagonal blocks W_ii."""
-        m = self.n_contacts
-        rows = np.repeat(np.arange(m), np.diff(self.indptr))
-        pos = np.flatnonzero(rows == self.indices)
-        return self.blocks[pos].copy()
-
-    def matvec(self, r: np.ndarray, b: np.ndarray | None = None) -> np.ndarray:
-        """W r (+ b) for r of shape (3m,) or (m, 3); returns (m, 3)."""
-        m = self.n_contacts
-        r = np.ascontiguousarray(np.asarray(r, dtype=np.float64).reshape(m, 3))
-        b = np.zeros((m, 3)) if b is None else np.ascontiguousarray(np.asarray(b, dtype=np.float64).reshape(m, 3))
-        out = np.empty((m, 3))
-        block_matvec(self.indptr, self.indices, self.blocks, r, b, out)
-        return out
 
 
 @njit(cache=True, fastmath=_FM)
@@ -175,14 +136,6 @@ class UpperBlockDelassus:
 
     def diagonal(self) -> np.ndarray:
         return self.blocks[self.indptr[:-1]].copy()
-
-    def matvec(self, r: np.ndarray, b: np.ndarray | None = None) -> np.ndarray:
-        m = self.n_contacts
-        r = np.ascontiguousarray(np.asarray(r, dtype=np.float64).reshape(m, 3))
-        b = np.zeros((m, 3)) if b is None else np.ascontiguousarray(np.asarray(b, dtype=np.float64).reshape(m, 3))
-        out = np.empty((m, 3))
-        upper_block_matvec(self.indptr, self.indices, self.blocks, r, b, out)
-        return out
 
 
 @njit(cache=True)

@@ -53,59 +53,6 @@ def project_cone(mu, zn, zt1, zt2):
     return a, s * zt1, s * zt2
 
 
-@njit(cache=True)
-def project_cone_jacobian(mu, z, P, J):
-    """P = P_K(z) and J = dP/dz (3x3, an element of the Clarke Jacobian at the kinks).
-
-    On the boundary branch P = a d with d = (1, mu w), w = z_T/||z_T||:
-        J = d d^T / (1 + mu^2) + a mu [0, 0; 0, (I - w w^T) / ||z_T||]
-    """
-    zn = z[0]
-    zt1 = z[1]
-    zt2 = z[2]
-    nt = math.sqrt(zt1 * zt1 + zt2 * zt2)
-    for i in range(3):
-        for j in range(3):
-            J[i, j] = 0.0
-    if nt <= mu * zn and zn >= 0.0:
-        P[0] = zn
-        P[1] = zt1
-        P[2] = zt2
-        J[0, 0] = 1.0
-        J[1, 1] = 1.0
-        J[2, 2] = 1.0
-        return
-    if mu * nt <= -zn:
-        P[0] = 0.0
-        P[1] = 0.0
-        P[2] = 0.0
-        return
-    a = (zn + mu * nt) / (1.0 + mu * mu)
-    w1 = zt1 / nt
-    w2 = zt2 / nt
-    P[0] = a
-    P[1] = a * mu * w1
-    P[2] = a * mu * w2
-    inv = 1.0 / (1.0 + mu * mu)
-    d0 = 1.0
-    d1 = mu * w1
-    d2 = mu * w2
-    J[0, 0] = d0 * d0 * inv
-    J[0, 1] = d0 * d1 * inv
-    J[0, 2] = d0 * d2 * inv
-    J[1, 0] = d1 * d0 * inv
-    J[1, 1] = d1 * d1 * inv
-    J[1, 2] = d1 * d2 * inv
-    J[2, 0] = d2 * d0 * inv
-    J[2, 1] = d2 * d1 * inv
-    J[2, 2] = d2 * d2 * inv
-    g = a * mu / nt
-    J[1, 1] += g * (1.0 - w1 * w1)
-    J[1, 2] += g * (-w1 * w2)
-    J[2, 1] += g * (-w2 * w1)
-    J[2, 2] += g * (1.0 - w2 * w2)
-
-
 @njit(cache=True, inline="always")
 def effective_velocity(law, mu, un, ut1, ut2):
     """u_eff = u (SOC) or u + mu ||u_T|| e_N (Coulomb, De Saxcé)."""

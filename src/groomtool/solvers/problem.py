@@ -105,34 +105,6 @@ class ContactProblem:
         return all(d.ndim == 1 for d in self.D_blocks)
 
     # ------------------------------------------------------------------ operators
-    def D_matrix(self) -> sp.csr_matrix:
-        """D as a sparse block-diagonal matrix (n, n), built in one go (no per-block sparse objects)."""
-        if "D" not in self._cache:
-            rows, cols, vals = [], [], []
-            for o, d in zip(self.dof_offsets[:-1], self.D_blocks):
-                k = d.shape[0]
-                if d.ndim == 1:
-                    idx = o + np.arange(k)
-                    rows.append(idx)
-                    cols.append(idx)
-                else:
-                    rows.append(o + np.repeat(np.arange(k), k))
-                    cols.append(o + np.tile(np.arange(k), k))
-                vals.append(d.reshape(-1))
-            cat = (lambda a, dt: np.concatenate(a).astype(dt)) if rows else (lambda a, dt: np.zeros(0, dt))
-            self._cache["D"] = sp.csr_matrix(
-                (cat(vals, np.float64), (cat(rows, np.int64), cat(cols, np.int64))), shape=(self.n_dofs, self.n_dofs)
-            )
-        return self._cache["D"]
-
-    def HD(self) -> sp.csr_matrix:
-        """H D (3m, n): row 3i+a is (D H_i^T)^T, the dofs a unit reaction on contact i moves."""
-        if "HD" not in self._cache:
-            hd = (self.H @ self.D_matrix()).tocsr()
-            hd.sort_indices()
-            self._cache["HD"] = hd
-        return self._cache["HD"]
-
     def D_apply(self, x: np.ndarray) -> np.ndarray:
         """D x, strand block by strand block.  x: (n,)."""
         out = np.empty(self.n_dofs)
@@ -150,8 +122,25 @@ class ContactProblem:
         return self.delassus_apply(r) + self.b
 
     def assemble_W(self) -> sp.csr_matrix:
-        """W = H D H^T + 2 gamma I as a sparse (3m, 3m) matrix (small cases, tests)."""
-        W = (self.HD() @ self.H.T).tocsr() + 2.0 * self.gamma * sp.identity(self.H.shape[0], format="csr")
+        """W = H D H^T + 2 gamma I as a sparse (3m, 3m) matrix (small cases, tests), through the sparse
+        block-diagonal D (built in one go, no per-block sparse objects) and H D."""
+        rows, cols, vals = [], [], []
+        for o, d in zip(self.dof_offsets[:-1], self.D_blocks):
+            k = d.shape[0]
+            if d.ndim == 1:
+                idx = o + np.arange(k)
+                rows.append(idx)
+                cols.append(idx)
+            else:
+                rows.append(o + np.repeat(np.arange(k), k))
+                cols.append(o + np.tile(np.arange(k), k))
+            vals.append(d.reshape(-1))
+        cat = (lambda a, dt: np.concatenate(a).astype(dt)) if rows else (lambda a, dt: np.zeros(0, dt))
+        D = sp.csr_matrix((cat(vals, np.float64), (cat(rows, np.int64), cat(cols, np.int64))),
+                          shape=(self.n_dofs, self.n_dofs))
+        HD = (self.H @ D).tocsr()
+        HD.sort_indices()
+        W = (HD @ self.H.T).tocsr() + 2.0 * self.gamma * sp.identity(self.H.shape[0], format="csr")
         W.sort_indices()
         return W
 

@@ -29,13 +29,6 @@ from .cones import cone_excess, fischer_burmeister_sq, law_code, natural_map_nor
 
 
 @njit(cache=True)
-def contact_errors(law, r, u, mu, rho, out):
-    """out[i] = ||r_i - P_K(r_i - rho_i u_eff_i)|| for every contact (r, u: (m, 3))."""
-    for i in range(r.shape[0]):
-        out[i] = natural_map_norm(law, mu[i], rho[i], r[i, 0], r[i, 1], r[i, 2], u[i, 0], u[i, 1], u[i, 2])
-
-
-@njit(cache=True)
 def residual_max_rms(law, r, u, mu, rho):
     """(max_i ||e_i||, sqrt(mean_i ||e_i||^2)) without a temporary array."""
     emax = 0.0
