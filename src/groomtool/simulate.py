@@ -1,4 +1,4 @@
-"""Forward simulation of Super-Helices under gravity and Coulomb frictional contact (MATH.md 1, 4, 5).
+"""Forward simulation of Super-Helices under gravity and Coulomb frictional contact (docs/maths.md section 9).
 
 Equations of motion per strand (rods/dynamics.py for M and A):
 

@@ -13,7 +13,7 @@ comes first).  With C' = J(s) qdot and w = Jw(s) qdot,
 where a(s) = Jdot qdot and alpha(s) = Jwdot qdot are the accelerations at qddot = 0 (velocity-quadratic,
 plus the prescribed acceleration of a moving root).  The equations of motion are M qddot + A = forces.
 
-Structure used (MATH.md section 1, superhelix.py): for a point x in element e,
+Structure used (docs/maths.md section 2, superhelix.py): for a point x in element e,
     J_k(x)  = B_k - [x]x Theta_k,   Jw_k = Theta_k            (k < e)
     J_e(x)  = R_e D_e(t),           Jw_e = R_e Psi_1(t)        (own element)
 so every block M_jk (j < k) is left_j @ right_k with left_j = [B_j^T | Theta_j^T] (3 x 6) and right_k

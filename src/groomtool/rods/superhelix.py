@@ -1,4 +1,4 @@
-"""Super-Helix kinematics, gravity and their derivatives, batched over strands (MATH.md section 1).
+"""Super-Helix kinematics, gravity and their derivatives, batched over strands (docs/maths.md sections 1-2).
 
 A strand is N helical elements of lengths l_j with constant material Darboux vectors
 omega_j = q_j = (twist kappa0, kappa1, kappa2).  Frames are 3x3 matrices whose **columns** are

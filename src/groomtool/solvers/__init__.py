@@ -1,4 +1,4 @@
-"""Contact solvers: the SOCQP of the inversion and Coulomb friction of the simulator (MATH.md 4-6).
+"""Contact solvers: the SOCQP of the inversion and Coulomb friction of the simulator (docs/maths.md sections 5-7).
 
     u = W r + b,  W = H D H^T + 2 gamma I,  one 3-vector block [N, T1, T2] per contact.
 

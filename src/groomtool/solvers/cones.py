@@ -5,7 +5,7 @@ Each contact has a 3-vector block ``[normal, tangent1, tangent2]``.  The frictio
     K_mu     = { r : ||r_T|| <= mu r_N }
     K_mu^*   = K_{1/mu} = { u : mu ||u_T|| <= u_N }
 
-The two laws (section 4 of MATH.md) share one *natural map*
+The two laws (docs/maths.md section 5) share one *natural map*
 ``e = r - P_K(r - rho * u_eff)``:
 
 * ``SOC``     (the associated law, KKT of the SOCQP):  ``u_eff = u``

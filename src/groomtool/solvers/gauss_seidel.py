@@ -1,4 +1,4 @@
-"""Block Gauss-Seidel over contacts (section 5 of MATH.md), matrix-free or on the assembled W.
+"""Block Gauss-Seidel over contacts (docs/maths.md section 6), matrix-free or on the assembled W.
 
 One sweep visits the contacts in a fixed order; contact i solves its 3x3 local problem
 
