@@ -130,8 +130,9 @@ class State:
 @dataclass
 class StepSystem:
     """One step up to the contact problem (exposed for tests): the Cholesky factors of Mhat per strand
-    (simulate_linalg.StrandFactors, a buffer the next step overwrites), the free rates v_free (S, N, 3), contacts, H, the solver-scaled ContactProblem (r = r_scale r~,
-    u = u_scale u~), and the geometry it was built on."""
+    (simulate_linalg.StrandFactors, a buffer the next step overwrites), the free rates v_free (S, N, 3),
+    contacts, H, the solver-scaled ContactProblem (r = r_scale r~, u = u_scale u~), and the geometry it
+    was built on."""
 
     helix: sh.SuperHelix
     kin: sh.Kinematics
