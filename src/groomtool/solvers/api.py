@@ -1,5 +1,7 @@
 """Public entry points: solve_socqp, solve_coulomb (assembled W) and solve_contact_problem (factored).
 
+All three go through one dispatch, :func:`_solve`, on a target that says how the problem at hand builds
+each method's operator (_AssembledTarget, _FactoredTarget): a new method is one branch there.
 Every solver returns a SolveResult whose ``residual`` is the measure of residual.py, computed on the
 returned r whatever the method, so results of different methods compare directly.
 """
@@ -154,51 +156,59 @@ def _check_assembled(W, b, mu):
     return W, b, mu
 
 
+class _AssembledTarget:
+    """What the one dispatch (:func:`_solve`) needs from a problem given as an assembled W."""
+
+    form = "assembled"  # of the Gauss-Seidel and APGD operators
+    clarabel_form = "assembled"
+    # clarabel's point goes through _polish_with_gs even within tol, so it counts as converged by its
+    # residual whatever clarabel's status (AlmostSolved within tol: converged; non-finite: not); the
+    # factored target keeps clarabel's verdict then.  The two entry points have always differed here.
+    polish_within_tol = True
+
+    def __init__(self, W, b, mu):
+        self.W, self.b, self.mu = W, b, mu
+        self.gs_op = None  # the Gauss-Seidel operator of the solve, whose rho the residual reuses
+        self._scale_rho = None
+
+    def gs_operator(self, order):
+        order = _resolve_order(order, self.W)
+        self.gs_op = AssembledOperator.from_sparse(self.W, self.b, self.mu, order)
+        return self.gs_op
+
+    def apgd_operator(self):
+        """(x -> W x, rho, b)."""
+        U = UpperBlockDelassus.from_sparse(self.W)
+        return UpperMatvec(U), _res.rho_from_diagonal(U.diagonal()), self.b
+
+    def clarabel(self, max_iter, options):
+        return solve_assembled(self.W, self.b, self.mu, max_iter=max_iter, **options)
+
+    def polish_operator(self):
+        return AssembledOperator.from_sparse(self.W, self.b, self.mu)
+
+    def velocity(self, r):
+        return self.W @ r + self.b
+
+    def residual(self, r, u, law, scale):
+        if self._scale_rho is None:
+            op = self.gs_op
+            if op is not None:  # W's diagonal blocks, already extracted (saves 9 sparse slices)
+                rho = op.rho if op.order is None else op.rho[np.argsort(op.order)]
+            else:
+                rho = _res.rho_from_diagonal(_diagonal_of(self.W))
+            self._scale_rho = (scale or _res.residual_scale(self.b, rho), rho)
+        scale, rho = self._scale_rho
+        return _res.residual(r, u, self.mu, rho, scale, law=law)
+
+    def cone_violation(self, r):
+        return _res.cone_violation(r, self.mu)
+
+
 def _solve_assembled(W, b, mu, law, method, tol, max_iter, r0, options) -> SolveResult:
     t0 = time.perf_counter()
-    W, b, mu = _check_assembled(W, b, mu)
-    method = _resolve_method(law, method)
-    max_iter = DEFAULT_MAX_ITER.get(method, 5000) if max_iter is None else int(max_iter)
-    info: dict = {}
-    if method in ("gs", "fixed_point", "auto"):
-        order = _resolve_order(options.pop("order", None), W)
-        op = AssembledOperator.from_sparse(W, b, mu, order)
-        setup_s = time.perf_counter() - t0
-        r, iters, conv, res_solver = _run_gs_family(op, law, method, tol, max_iter, r0, options, info)
-        info.update(form="assembled", setup_s=setup_s)
-        status = _iterative_status(conv, res_solver, iters, max_iter, info)
-    elif method == "apgd":
-        U = UpperBlockDelassus.from_sparse(W)
-        rho = _res.rho_from_diagonal(U.diagonal())
-        setup_s = time.perf_counter() - t0
-        out = run_apgd(UpperMatvec(U), b, mu, rho, tol=tol, max_iter=max_iter, r0=r0, **options)
-        r, iters, conv = out.r, out.iterations, out.converged
-        info.update(form="assembled", setup_s=setup_s, solve_s=out.solve_s, restarts=out.restarts, history=out.history)
-        status = _iterative_status(conv, out.residual, iters, max_iter, info)
-    else:
-        polish = options.pop("polish", True)
-        callback = options.pop("callback", None)
-        out = solve_assembled(W, b, mu, max_iter=max_iter, **{k: v for k, v in options.items() if k != "scale"})
-        r, iters, status = out.r, out.iterations, out.status
-        conv = status == "Solved"
-        info.update(form="assembled", setup_s=out.setup_s, solve_s=out.solve_s, kkt_size=out.kkt_size)
-    u = W @ r + b
-    if method in ("gs", "fixed_point", "auto"):  # W's diagonal blocks, already extracted (saves 9 sparse slices)
-        rho = op.rho if op.order is None else op.rho[np.argsort(op.order)]
-    else:
-        rho = _res.rho_from_diagonal(_diagonal_of(W))
-    scale = options.get("scale") or _res.residual_scale(b, rho)
-    residual = _res.residual(r, u, mu, rho, scale, law=law)
-    if method == "clarabel" and polish and status in ("Solved", "AlmostSolved"):
-        op = AssembledOperator.from_sparse(W, b, mu)
-        r, conv, status = _polish_with_gs(op, r, residual, tol, info, status, callback, options.get("scale"))
-        u = W @ r + b
-        residual = _res.residual(r, u, mu, rho, scale, law=law)
-    return SolveResult(
-        r=r, status=status, converged=bool(conv), residual=float(residual), iterations=int(iters),
-        objective=float(0.5 * r @ (u + b)), cone_violation=_res.cone_violation(r, mu),
-        time_s=time.perf_counter() - t0, method=method, info=info,
-    )
+    target = _AssembledTarget(*_check_assembled(W, b, mu))
+    return _solve(target, law, _resolve_method(law, method), tol, max_iter, r0, options, t0)
 
 
 def _diagonal_of(W: sp.csr_matrix) -> np.ndarray:
@@ -285,6 +295,55 @@ def _factored_residual(problem: ContactProblem, r, law: str, scale=None, u=None)
     return _res.residual(r, u, problem.mu, problem.rho(), float(scale), law=law)
 
 
+class _FactoredTarget:
+    """What the one dispatch (:func:`_solve`) needs from a ContactProblem (W = H D H^T + 2 gamma I)."""
+
+    clarabel_form = "factored"
+    polish_within_tol = False  # see _AssembledTarget
+
+    def __init__(self, problem: ContactProblem, form: str):
+        self.problem, self.b, self.mu = problem, problem.b, problem.mu
+        self.requested_form = form
+        self._form = None
+
+    @property
+    def form(self) -> str:
+        """The operators' form: the caller's, or choose_form's for "auto" (decided once, when first needed)."""
+        if self._form is None:
+            self._form = choose_form(self.problem) if self.requested_form == "auto" else self.requested_form
+        return self._form
+
+    def gs_operator(self, order):
+        order = _resolve_order(order, self.problem.H)
+        if self.form == "assembled":
+            return AssembledOperator.from_problem(self.problem, order)
+        return MatrixFreeOperator(self.problem, order)
+
+    def apgd_operator(self):
+        """(x -> W x, rho, b)."""
+        if self.form == "assembled":
+            op = AssembledOperator.from_problem(self.problem)
+            return UpperMatvec(op.W), op.rho, self.b
+        return FactoredMatvec(self.problem), self.problem.rho(), self.b
+
+    def clarabel(self, max_iter, options):
+        return solve_factored(self.problem, max_iter=max_iter, **options)
+
+    def polish_operator(self):
+        if self.form == "assembled":
+            return AssembledOperator.from_problem(self.problem)
+        return MatrixFreeOperator(self.problem)
+
+    def velocity(self, r):
+        return self.problem.velocity(r)
+
+    def residual(self, r, u, law, scale):
+        return _factored_residual(self.problem, r, law, scale, u)
+
+    def cone_violation(self, r):
+        return self.problem.cone_violation(r)
+
+
 def solve_contact_problem(
     problem: ContactProblem,
     law: str = "soc",
@@ -308,48 +367,48 @@ def solve_contact_problem(
     method = _resolve_method(law, method)
     if form not in ("auto", "assembled", "matrix_free"):
         raise ValueError(f"unknown form {form!r}")
+    return _solve(_FactoredTarget(problem, form), law, method, tol, max_iter, r0, dict(options), t0)
+
+
+# ----------------------------------------------------------------------------------------------
+# the one dispatch
+# ----------------------------------------------------------------------------------------------
+def _solve(target, law: str, method: str, tol: float, max_iter, r0, options: dict, t0: float) -> SolveResult:
+    """Run ``method`` (resolved) on an _AssembledTarget or a _FactoredTarget; ``options`` is the caller's
+    copy (this pops what it consumes)."""
     max_iter = DEFAULT_MAX_ITER.get(method, 5000) if max_iter is None else int(max_iter)
-    options = dict(options)
     info: dict = {}
+    scale = options.get("scale")
     if method == "clarabel":
         polish = options.pop("polish", True)
         callback = options.pop("callback", None)
-        out = solve_factored(problem, max_iter=max_iter, **{k: v for k, v in options.items() if k != "scale"})
+        out = target.clarabel(max_iter, {k: v for k, v in options.items() if k != "scale"})
         r, iters, status = out.r, out.iterations, out.status
         conv = status == "Solved"
-        info.update(form="factored", setup_s=out.setup_s, solve_s=out.solve_s, kkt_size=out.kkt_size)
+        info.update(form=target.clarabel_form, setup_s=out.setup_s, solve_s=out.solve_s, kkt_size=out.kkt_size)
         if polish and status in ("Solved", "AlmostSolved"):
-            residual = _factored_residual(problem, r, law, options.get("scale"))
-            if residual > tol:
-                if form == "auto":
-                    form = choose_form(problem)
-                op = AssembledOperator.from_problem(problem) if form == "assembled" else MatrixFreeOperator(problem)
-                r, conv, status = _polish_with_gs(op, r, residual, tol, info, status, callback, options.get("scale"))
+            residual = target.residual(r, target.velocity(r), law, scale)
+            if residual > tol or target.polish_within_tol:
+                r, conv, status = _polish_with_gs(target.polish_operator(), r, residual, tol, info, status,
+                                                  callback, scale)
     else:
-        if form == "auto":
-            form = choose_form(problem)
-        order = options.pop("order", None)
-        if method != "apgd":
-            order = _resolve_order(order, problem.H)
-            op = AssembledOperator.from_problem(problem, order) if form == "assembled" else MatrixFreeOperator(problem, order)
+        order = options.pop("order", None)  # Gauss-Seidel's sweep order; APGD has none
+        if method == "apgd":
+            mv, rho, b = target.apgd_operator()
             setup_s = time.perf_counter() - t0
-            r, iters, conv, res_solver = _run_gs_family(op, law, method, tol, max_iter, r0, options, info)
-        else:
-            if form == "assembled":
-                op = AssembledOperator.from_problem(problem)
-                mv, rho, b = UpperMatvec(op.W), op.rho, problem.b
-            else:
-                mv, rho, b = FactoredMatvec(problem), problem.rho(), problem.b
-            setup_s = time.perf_counter() - t0
-            out = run_apgd(mv, b, problem.mu, rho, tol=tol, max_iter=max_iter, r0=r0, **options)
+            out = run_apgd(mv, b, target.mu, rho, tol=tol, max_iter=max_iter, r0=r0, **options)
             info.update(restarts=out.restarts, solve_s=out.solve_s, history=out.history)
             r, iters, conv, res_solver = out.r, out.iterations, out.converged, out.residual
+        else:
+            op = target.gs_operator(order)
+            setup_s = time.perf_counter() - t0
+            r, iters, conv, res_solver = _run_gs_family(op, law, method, tol, max_iter, r0, options, info)
         status = _iterative_status(conv, res_solver, iters, max_iter, info)
-        info.update(form=form, setup_s=setup_s)
-    u = problem.velocity(r)
-    residual = _factored_residual(problem, r, law, options.get("scale"), u)
+        info.update(form=target.form, setup_s=setup_s)
+    u = target.velocity(r)
+    residual = target.residual(r, u, law, scale)
     return SolveResult(
         r=r, status=status, converged=bool(conv), residual=float(residual), iterations=int(iters),
-        objective=float(0.5 * r @ (u + problem.b)), cone_violation=problem.cone_violation(r),
+        objective=float(0.5 * r @ (u + target.b)), cone_violation=target.cone_violation(r),
         time_s=time.perf_counter() - t0, method=method, info=info,
     )
