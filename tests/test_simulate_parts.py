@@ -83,7 +83,7 @@ def test_factor_step_matrix_matches_the_dense_reference(seed, unstable):
     assert modified == ref_modified
     got = chol @ np.swapaxes(chol, -1, -2)
     assert np.abs(got - ref).max() <= 1e-10 * np.abs(ref).max()
-    assert np.allclose(np.triu(chol, 1), 0.0)
+    assert np.allclose(np.tril(chol, -1), 0.0)  # tip first: F = P L P is upper triangular (StrandFactors)
     rhs = rng.normal(size=(S, n)) * np.repeat(np.arange(N)[None, :] < n_elements[:, None], 3, axis=1)
     x = factors.solve(rhs)
     assert np.abs(np.einsum("sij,sj->si", ref, x) - rhs).max() <= 1e-9 * np.abs(rhs).max()
@@ -91,6 +91,9 @@ def test_factor_step_matrix_matches_the_dense_reference(seed, unstable):
         m = 3 * int(n_elements[s])
         inv = factors.inverse(s)
         assert np.abs(inv @ ref[s, :m, :m] - np.eye(m)).max() <= 1e-9
+        k = int(rng.integers(1, m + 1))  # the leading block a contact problem on the first k dofs needs
+        lead = factors.leading_inverse(s, k)
+        assert np.abs(lead - inv[:k, :k]).max() <= 1e-10 * np.abs(inv).max()
 
 
 @pytest.mark.parametrize("seed, strength", [(0, 1.0), (1, 1.0), (0, 1e4), (1, 1e4)])
@@ -194,6 +197,26 @@ def crossing_strands():
 
 def keys(contacts):
     return {(int(a), int(b)): None for a, b in zip(contacts.strand_a, contacts.strand_b)}
+
+
+def test_contact_problem_on_the_moved_dofs_is_the_full_delassus():
+    """The simulator's contact problem keeps each strand's dofs up to its farthest contact only
+    (D_s = (Mhat_s^-1)[:k_s, :k_s]): its W equals H Mhat^-1 H^T with the whole H and the whole inverses."""
+    import scipy.sparse as sp
+
+    helix, sphere = crossing_strands()
+    params = SimulationParams(dt=1 / 240, contacts="all", contact_radius=50e-6)
+    sim = Simulator(helix, helix.curvatures, Material(), GRAVITY, head=sphere, params=params)
+    for _ in range(3):
+        sim.step()
+    system = sim.assemble()
+    assert system.problem is not None
+    full_inverse = sp.block_diag([system.factors.inverse(s) for s in range(helix.n_strands)]).toarray()
+    H = system.H.toarray()
+    W_full = H @ full_inverse @ H.T
+    W = system.problem.assemble_W().toarray()
+    assert np.abs(W - W_full).max() <= 1e-12 * np.abs(W_full).max()
+    assert system.problem.H.shape[1] < system.H.shape[1]  # some dofs were left out
 
 
 def test_kept_contacts_match_a_fresh_detection_and_save_passes():

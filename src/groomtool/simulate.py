@@ -315,7 +315,7 @@ class Simulator:
 
     def _build_problem(self, system: StepSystem, w: np.ndarray) -> None:
         """The contact problem u~ = W r~ + b~ with W = H Mhat^-1 H^T (dense Mhat^-1 blocks only for the
-        strands in contact), in impulse units r = r_scale r~, u = r_scale u~ (the block Gauss-Seidel
+        strands in contact, and of those only on the dofs up to their farthest contact's element), in impulse units r = r_scale r~, u = r_scale u~ (the block Gauss-Seidel
         normalises every local problem, so W needs no scaling)."""
         from .solvers import ContactProblem
 
@@ -331,18 +331,24 @@ class Simulator:
             system.contacts = system.contacts.subset(keep)
             H = system.H = H[np.repeat(keep, 3)]
             w = w.reshape(-1, 3)[keep].ravel()
-        touched = np.zeros(helix.n_strands, dtype=bool)
-        touched[system.contacts.strand_a] = True
-        touched[system.contacts.strand_b[system.contacts.strand_b >= 0]] = True
-        blocks = [np.zeros(3 * int(k)) for k in helix.n_elements]
-        for s in np.flatnonzero(touched):
-            blocks[s] = system.factors.inverse(s)
         b = H @ helix.to_flat(system.v_free).ravel() + w
+        # the problem on the dofs the contacts move: strand s's first k_s (a contact on element e moves the
+        # dofs of elements 0..e only), with D_s = (Mhat_s^-1)[:k_s, :k_s] (StrandFactors.leading_inverse)
+        offsets = 3 * helix.flat_offsets()
+        strand_of = np.searchsorted(offsets, H.indices, side="right") - 1
+        k = np.zeros(helix.n_strands, dtype=np.int64)
+        np.maximum.at(k, strand_of, H.indices - offsets[strand_of] + 1)
+        touched = np.flatnonzero(k > 0)
+        new_offsets = np.zeros(helix.n_strands, dtype=np.int64)
+        new_offsets[touched] = np.concatenate([[0], np.cumsum(k[touched])[:-1]])
+        H_moved = sp.csr_matrix((H.data, new_offsets[strand_of] + H.indices - offsets[strand_of], H.indptr),
+                                shape=(H.shape[0], int(k.sum())))
+        blocks = [system.factors.leading_inverse(s, int(k[s])) for s in touched]
         g = float(np.linalg.norm(self.gravity))
         r_scale = self.inertia.linear * float(np.mean(helix.strand_lengths)) * max(g * self.params.dt, 1e-3)
         mu = np.full(len(system.contacts.strand_a), self.friction)
-        system.problem = ContactProblem(H=H, D_blocks=blocks, dof_offsets=3 * helix.flat_offsets(), gamma=0.0,
-                                        b=b / r_scale, mu=mu)
+        system.problem = ContactProblem(H=H_moved, D_blocks=blocks, dof_offsets=np.concatenate([[0], np.cumsum(k[touched])]),
+                                        gamma=0.0, b=b / r_scale, mu=mu)
         system.r_scale = system.u_scale = r_scale
         system.r0 = (self.tracker.initial_impulses(system.contacts) / r_scale).ravel()
 

@@ -99,9 +99,15 @@ class StepCorrections:
 
 
 class StrandFactors:
-    """Lower Cholesky factors L_s of every strand's step matrix on its n_s = 3 N_s real dofs, stored back
-    to back (memory sum n_s^2, not S max(n_s)^2): strand s's factor is data[ptr[s]:ptr[s+1]] as an
-    (n_s, n_s) row-major matrix."""
+    """Cholesky factors of every strand's step matrix on its n_s = 3 N_s real dofs, stored back to back
+    (memory sum n_s^2, not S max(n_s)^2): strand s's factor is data[ptr[s]:ptr[s+1]] as an (n_s, n_s)
+    row-major matrix.
+
+    Tip first: with P the reversal of the dofs, the stored L is lower triangular with P Mhat P = L L^T,
+    i.e. Mhat = (P L P)(P L P)^T with P L P upper triangular.  A contact on element e moves the dofs
+    of elements 0..e only, so the contact problem needs just the leading block D[:k, :k] of
+    D = Mhat^-1, and that is (T T^T)^-1 (reversed) for the trailing block T = L[n-k:, n-k:]: O(k^3)
+    instead of O(n^3) (:meth:`leading_inverse`)."""
 
     def __init__(self, n_elements: np.ndarray):
         self.sizes = 3 * np.asarray(n_elements, dtype=np.int64)
@@ -110,39 +116,48 @@ class StrandFactors:
         self.data = np.zeros(int(self.ptr[-1]))
 
     def factor(self, s: int) -> np.ndarray:
+        """The stored (tip-first, lower triangular) factor L of P Mhat_s P."""
         n = int(self.sizes[s])
         return self.data[self.ptr[s]:self.ptr[s + 1]].reshape(n, n)
 
     def dense(self, n_pad: int | None = None) -> np.ndarray:
-        """The factors padded to (S, n, n), the padding the identity (tests)."""
+        """Factors F_s = P L_s P with F_s F_s^T = Mhat_s (upper triangular), padded to (S, n, n) with the
+        identity (tests)."""
         n_pad = int(self.sizes.max(initial=0)) if n_pad is None else n_pad
         out = np.zeros((len(self.sizes), n_pad, n_pad))
         for s, n in enumerate(self.sizes):
-            out[s, :n, :n] = self.factor(s)
+            out[s, :n, :n] = self.factor(s)[::-1, ::-1]
             out[s, np.arange(n, n_pad), np.arange(n, n_pad)] = 1.0
         return out
 
     def solve(self, rhs: np.ndarray) -> np.ndarray:
-        """x = (L L^T)^-1 rhs per strand; rhs (S, n_pad) padded (padding rows are copied: identity)."""
+        """x = Mhat^-1 rhs per strand; rhs (S, n_pad) padded (padding rows are copied: identity)."""
         rhs = np.ascontiguousarray(rhs, dtype=np.float64)
         out = rhs.copy()
         _solve_kernel(self.data, self.ptr, self.sizes, rhs, out)
         return out
 
     def inverse(self, s: int) -> np.ndarray:
-        """(L_s L_s^T)^-1, LAPACK dpotri."""
-        return cho_inverse(self.factor(s), int(self.sizes[s]))
+        """Mhat_s^-1 (n_s, n_s), LAPACK dpotri."""
+        return self.leading_inverse(s, int(self.sizes[s]))
+
+    def leading_inverse(self, s: int, k: int) -> np.ndarray:
+        """(Mhat_s^-1)[:k, :k]: the inverse of the factor's trailing k x k block, reversed (LAPACK dpotri)."""
+        n = int(self.sizes[s])
+        T = np.ascontiguousarray(self.factor(s)[n - k:, n - k:])
+        return np.ascontiguousarray(cho_inverse(T, k)[::-1, ::-1])
 
 
 @njit(cache=True)
 def _solve_kernel(data, ptr, sizes, rhs, out):
+    """x = P (L L^T)^-1 P rhs per strand (L stored tip first, P the reversal)."""
     for s in range(sizes.shape[0]):
         n = sizes[s]
         L = data[ptr[s]:ptr[s + 1]].reshape(n, n)
-        y = _forward(L, rhs[s], n)
+        y = _forward(L, rhs[s, :n][::-1].copy(), n)
         x = _backward(L, y, n)
         for i in range(n):
-            out[s, i] = x[i]
+            out[s, i] = x[n - 1 - i]
 
 
 @njit(cache=True)
@@ -162,7 +177,8 @@ def _factor_kernel(A, a_scale, Kd, k_scale, B, U, G, Dg, b_scale, n_elements, co
     generators of superhelix.gravity_force_jacobian, never stored densely); if a/2 + b is positive
     definite, L = cholesky(a + b) (status 0); else with a kept correction C (corr[corr_start[s]:]) for
     which a/2 + b + C is, L = cholesky(a + b + C) (status 1); else status 2 (a new eigendecomposition
-    is needed: done by the caller).  L goes to out_data[out_ptr[s]:] (n x n row-major)."""
+    is needed: done by the caller).  The Cholesky factors are of the matrices with the dofs reversed
+    (tip first, StrandFactors); L goes to out_data[out_ptr[s]:] (n x n row-major)."""
     for s in range(A.shape[0]):
         n = 3 * n_elements[s]
         a = np.empty((n, n))
@@ -187,12 +203,15 @@ def _factor_kernel(A, a_scale, Kd, k_scale, B, U, G, Dg, b_scale, n_elements, co
                                            + U[s, r, x, 2] * G[s, k, 2, y])
                             b[3 * r + x, 3 * k + y] = v
                             b[3 * k + y, 3 * r + x] = v
+        # tip first: factor P (.) P (StrandFactors)
+        a = a[::-1, ::-1]
+        b = b[::-1, ::-1]
         L, ok = _try_cholesky(0.5 * a + b)
         st = 0
         if ok:
             L, ok = _try_cholesky(a + b)
         if not ok and corr_start[s] >= 0:
-            C = corr[corr_start[s]:corr_start[s] + n * n].reshape(n, n)
+            C = corr[corr_start[s]:corr_start[s] + n * n].reshape(n, n)[::-1, ::-1]
             L, ok = _try_cholesky(0.5 * a + b + C)
             if ok:
                 L, ok = _try_cholesky(a + b + C)
@@ -275,7 +294,7 @@ def factor_step_matrix(A: np.ndarray, B, n_elements: np.ndarray,
         else:
             b = b_scale * B[s, :n, :n]
         m = modified_step_matrix(a, b)
-        L = _cholesky(m)
+        L = _cholesky(np.ascontiguousarray(m[::-1, ::-1]))  # tip first (StrandFactors)
         if L is None:
             raise np.linalg.LinAlgError(f"strand {first + s}: the step matrix is not positive definite")
         out.factor(first + s)[:] = L
