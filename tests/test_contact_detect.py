@@ -83,6 +83,17 @@ def test_segment_distance_matches_reference(seg):
     assert d[0] == pytest.approx(reference_distance(p0, p1, q0, q1), abs=1e-9)
 
 
+@pytest.mark.parametrize("lift", [5.96e-8, 1e-9, 3e-7])
+def test_nearly_parallel_segments_sharing_an_endpoint_touch(lift):
+    """Hypothesis found it: two nearly antiparallel segments from one point were 'parallel' and the
+    pair (p0, q1) was returned, |lift| away, instead of the shared point."""
+    p0, p1, q0, q1 = np.array([1.0, 0, 0]), np.zeros(3), np.zeros(3), np.array([1.0, 0, lift])
+    assert segment_closest_points(p0, p1, q0, q1)[4][0] == pytest.approx(0.0, abs=1e-15)
+    # and along, with an offset: the distance is the offset, not offset + lift
+    off = np.array([0.0, 2e-6, 0.0])
+    assert segment_closest_points(p0, p1, q0 + off, q1 + off)[4][0] == pytest.approx(2e-6, rel=1e-9)
+
+
 @settings(max_examples=60, deadline=None)
 @given(segment_pairs())
 def test_segment_distance_not_above_dense_sampling_and_scipy(seg):

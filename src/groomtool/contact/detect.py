@@ -185,8 +185,9 @@ def _segment_params(p0x, p0y, p0z, p1x, p1y, p1z, q0x, q0y, q0z, q1x, q1y, q1z):
         return min(max(-c / a, 0.0), 1.0), 0.0
     b = d1x * d2x + d1y * d2y + d1z * d2z
     denom = a * e - b * b
+    parallel = not denom > _PARALLEL_EPS * a * e
     s = 0.0
-    if denom > _PARALLEL_EPS * a * e:
+    if not parallel:
         s = min(max((b * f - c * e) / denom, 0.0), 1.0)
     t = (b * s + f) / e
     if t < 0.0:
@@ -195,7 +196,34 @@ def _segment_params(p0x, p0y, p0z, p1x, p1y, p1z, q0x, q0y, q0z, q1x, q1y, q1z):
     elif t > 1.0:
         t = 1.0
         s = min(max((b - c) / a, 0.0), 1.0)
+    if not parallel:
+        return s, t
+    # (nearly) parallel: the pair above is a minimiser only if they are exactly parallel; the closest
+    # pair has an endpoint of one segment, so take the best of the four endpoint projections where one
+    # is clearly closer (|r + s d1 - t d2|^2 summed from its components: the expanded form cancels)
+    best = _gap2(rx, ry, rz, d1x, d1y, d1z, d2x, d2y, d2z, s, t)
+    for k in range(4):
+        if k == 0:
+            cs, ct = 0.0, min(max(f / e, 0.0), 1.0)
+        elif k == 1:
+            cs, ct = 1.0, min(max((b + f) / e, 0.0), 1.0)
+        elif k == 2:
+            cs, ct = min(max(-c / a, 0.0), 1.0), 0.0
+        else:
+            cs, ct = min(max((b - c) / a, 0.0), 1.0), 1.0
+        d2 = _gap2(rx, ry, rz, d1x, d1y, d1z, d2x, d2y, d2z, cs, ct)
+        if d2 < best * (1.0 - 1e-12):
+            best, s, t = d2, cs, ct
     return s, t
+
+
+@nb.njit(cache=True)
+def _gap2(rx, ry, rz, d1x, d1y, d1z, d2x, d2y, d2z, s, t):
+    """|r + s d1 - t d2|^2 from its components."""
+    vx = rx + s * d1x - t * d2x
+    vy = ry + s * d1y - t * d2y
+    vz = rz + s * d1z - t * d2z
+    return vx * vx + vy * vy + vz * vz
 
 
 @nb.njit(cache=True)
