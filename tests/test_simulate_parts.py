@@ -124,7 +124,7 @@ def test_step_matrix_from_the_gravity_generators_matches_the_dense_jacobian(seed
 
 def test_kept_step_corrections_are_the_fresh_ones_at_rest_and_bound_every_mode():
     """A kept correction reproduces the fresh factor when nothing changed, is reused while A/2 + B + C stays
-    positive definite (no mode's step factor below 1/2), and is dropped once the strand is stable."""
+    positive definite (no mode's step factor below 1/2), and is not used once the strand is stable."""
     rng = np.random.default_rng(11)
     m = 12
     X = rng.normal(size=(m, m))
@@ -153,8 +153,9 @@ def test_kept_step_corrections_are_the_fresh_ones_at_rest_and_bound_every_mode()
     # a large change: decomposed anew; a stable strand: correction dropped
     factor_step_matrix(A, 3.0 * B, n_elements, corrections)
     assert not np.array_equal(corrections.get(0), kept)
-    _, modified = factor_step_matrix(A, 0.0 * B, n_elements, corrections)
-    assert modified == 0 and corrections.get(0) is None
+    stable, modified = dense_factors(A, 0.0 * B, n_elements, corrections)
+    assert modified == 0 and corrections.get(0) is not None  # kept, unused while not needed
+    assert np.allclose(stable[0] @ stable[0].T, A[0], rtol=0, atol=1e-12 * np.abs(A[0]).max())
 
 
 def test_strand_chunks_cover_the_groom_within_the_memory_bound():

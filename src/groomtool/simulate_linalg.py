@@ -63,39 +63,35 @@ def strand_chunks(n_elements: np.ndarray, max_bytes: int = CHUNK_BYTES) -> list[
 
 class StepCorrections:
     """The unstable-mode correction C_s = modified_step_matrix(a, b) - a - b of each strand that needed
-    one, kept between steps (factor_step_matrix).  Stored per strand; ``packed()`` gives them back to
-    back for the compiled kernel (start offset per strand, -1 for none)."""
+    one, kept between steps (factor_step_matrix; a kept C is only used while the strand needs one).
+    Stored back to back in one growing buffer (``packed()``: the buffer and each strand's start, -1 for
+    none) so that the compiled kernel reads them in place: a new C overwrites the strand's slot."""
 
     def __init__(self, n_strands: int):
-        self.blocks: dict[int, np.ndarray] = {}
-        self._packed = None
-        self.n_strands = n_strands
+        self.start = np.full(n_strands, -1, dtype=np.int64)
+        self.size = np.zeros(n_strands, dtype=np.int64)
+        self.data = np.zeros(0)
+        self.used = 0
 
     def get(self, s: int) -> np.ndarray | None:
-        return self.blocks.get(int(s))
+        if self.start[s] < 0:
+            return None
+        n = int(self.size[s])
+        return self.data[self.start[s]:self.start[s] + n * n].reshape(n, n)
 
-    def set(self, s: int, correction: np.ndarray | None) -> None:
-        if correction is None:
-            if self.blocks.pop(int(s), None) is not None:
-                self._packed = None
-            return
-        self.blocks[int(s)] = np.ascontiguousarray(correction, dtype=np.float64)
-        self._packed = None
+    def set(self, s: int, correction: np.ndarray) -> None:
+        n = correction.shape[0]
+        if self.start[s] < 0 or self.size[s] != n:
+            if self.used + n * n > len(self.data):  # grow geometrically: amortised copies
+                grown = np.zeros(max(2 * len(self.data), self.used + n * n, 1024))
+                grown[:self.used] = self.data[:self.used]
+                self.data = grown
+            self.start[s], self.size[s] = self.used, n
+            self.used += n * n
+        self.data[self.start[s]:self.start[s] + n * n] = np.asarray(correction, dtype=np.float64).ravel()
 
     def packed(self) -> tuple[np.ndarray, np.ndarray]:
-        if self._packed is None:
-            start = np.full(self.n_strands, -1, dtype=np.int64)
-            parts, offset = [], 0
-            for s in sorted(self.blocks):
-                start[s] = offset
-                parts.append(self.blocks[s].ravel())
-                offset += self.blocks[s].size
-            data = np.concatenate(parts) if parts else np.zeros(0)
-            for s in self.blocks:  # views into the packed buffer: the corrections are held once
-                n = self.blocks[s].shape[0]
-                self.blocks[s] = data[start[s]:start[s] + n * n].reshape(n, n)
-            self._packed = (data, start)
-        return self._packed
+        return self.data, self.start
 
 
 class StrandFactors:
@@ -259,8 +255,9 @@ def factor_step_matrix(A: np.ndarray, B, n_elements: np.ndarray,
     ``corrections`` (StepCorrections, updated in place) keeps each strand's C between steps: a kept C
     is used again as long as a/2 + b + C stays positive definite (the same bound on every mode's step
     factor as for an unmodified strand), so the eigendecomposition is only redone when the strand
-    moved out of it; at rest the kept C is the fresh one.  Without it every modified strand is
-    decomposed anew.  A, B: (S, n, n) padded, for the strands first .. first + S - 1 of ``out`` (a
+    moved out of it; at rest the kept C is the fresh one.  A strand that no longer needs its C keeps it
+    (unused while a/2 + b is positive definite), ready if it needs one again.  Without ``corrections``
+    every modified strand is decomposed anew.  A, B: (S, n, n) padded, for the strands first .. first + S - 1 of ``out`` (a
     StrandFactors of the whole groom, filled in place; new when None, then first = 0).  Returns the
     factors and the number of these strands whose step matrix was modified.  Compiled (LAPACK dpotrf
     per strand), one eigendecomposition in Python per new C.
@@ -300,9 +297,6 @@ def factor_step_matrix(A: np.ndarray, B, n_elements: np.ndarray,
         out.factor(first + s)[:] = L
         if corrections is not None:
             corrections.set(first + int(s), m - (a + b))
-    if corrections is not None and corrections.blocks:
-        for s in np.flatnonzero(status == 0):
-            corrections.set(first + int(s), None)
     return out, int(np.count_nonzero(status > 0))
 
 
