@@ -45,6 +45,15 @@ def dense_factor_reference(A, B, n_elements):
     return M, modified
 
 
+def random_strands(rng, S: int, n: int, scale: float, length_range) -> sh.SuperHelix:
+    """S random strands of 1..n elements (lengths in length_range, curvatures ~ scale), random roots/frames."""
+    counts = rng.integers(1, n + 1, size=S)
+    lengths = rng.uniform(*length_range, size=(S, n)) * (np.arange(n)[None, :] < counts[:, None])
+    q = rng.normal(size=(S, n, 3)) * scale * (lengths > 0)[..., None]
+    frames = np.stack([frame(rng.normal(size=3), rng.normal(size=3)) for _ in range(S)])
+    return sh.SuperHelix(rng.normal(size=(S, 3)) * 0.05, frames, lengths, q, counts)
+
+
 def dense_factors(A, B, n_elements, *args, **kw):
     """factor_step_matrix's factors padded to (S, n, n) (padding the identity), and its count."""
     factors, modified = factor_step_matrix(A, B, n_elements, *args, **kw)
@@ -102,12 +111,9 @@ def test_step_matrix_from_the_gravity_generators_matches_the_dense_jacobian(seed
     from groomtool.rods import dynamics as dyn
 
     rng = np.random.default_rng(seed)
-    S, n = 4, 7
-    counts = rng.integers(1, n + 1, size=S)
-    lengths = rng.uniform(0.01, 0.04, size=(S, n)) * (np.arange(n)[None, :] < counts[:, None])
-    q = rng.normal(size=(S, n, 3)) * 20 * (lengths > 0)[..., None]
-    frames = np.stack([frame(rng.normal(size=3), rng.normal(size=3)) for _ in range(S)])
-    helix = sh.SuperHelix(rng.normal(size=(S, 3)) * 0.05, frames, lengths, q, counts)
+    S = 4
+    helix = random_strands(rng, S, 7, 20.0, (0.01, 0.04))
+    counts = helix.n_elements
     mat = Material()
     M = dyn.mass_matrix(helix, dyn.Inertia.from_material(mat))
     K = sh.stiffness(helix, mat.stiffness_diag)
@@ -430,12 +436,7 @@ def test_mass_matrix_kernel_matches_the_batched_assembly(seed, n, scale):
     from groomtool.rods import dynamics as dyn
 
     rng = np.random.default_rng(seed)
-    S = 3
-    counts = rng.integers(1, n + 1, size=S)
-    lengths = rng.uniform(0.002, 0.03, size=(S, n)) * (np.arange(n)[None, :] < counts[:, None])
-    q = rng.normal(size=(S, n, 3)) * scale * (lengths > 0)[..., None]
-    frames = np.stack([frame(rng.normal(size=3), rng.normal(size=3)) for _ in range(S)])
-    helix = sh.SuperHelix(rng.normal(size=(S, 3)) * 0.05, frames, lengths, q, counts)
+    helix = random_strands(rng, 3, n, scale, (0.002, 0.03))
     inertia = dyn.Inertia.from_material(Material())
     M = dyn.mass_matrix(helix, inertia)
     ref = batched_mass_reference(helix, inertia)
@@ -450,17 +451,12 @@ def test_inertia_kernel_matches_the_numpy_quadrature(seed, n, scale, moving):
     from groomtool.rods import dynamics as dyn
 
     rng = np.random.default_rng(seed)
-    S = 3
-    counts = rng.integers(1, n + 1, size=S)
-    lengths = rng.uniform(0.002, 0.03, size=(S, n)) * (np.arange(n)[None, :] < counts[:, None])
-    q = rng.normal(size=(S, n, 3)) * scale * (lengths > 0)[..., None]
-    frames = np.stack([frame(rng.normal(size=3), rng.normal(size=3)) for _ in range(S)])
-    helix = sh.SuperHelix(rng.normal(size=(S, 3)) * 0.05, frames, lengths, q, counts)
+    helix = random_strands(rng, 3, n, scale, (0.002, 0.03))
     inertia = dyn.Inertia(0.01, (3e-3, 1e-3, 2e-3))
-    rates = rng.normal(size=q.shape) * (lengths > 0)[..., None]
+    rates = rng.normal(size=helix.curvatures.shape) * helix.element_mask[..., None]
     motion = None
     if moving:
-        motion = {key: rng.normal(size=(S, 3)) for key in ("root_velocity", "root_angular_velocity",
+        motion = {key: rng.normal(size=(helix.n_strands, 3)) for key in ("root_velocity", "root_angular_velocity",
                                                             "root_acceleration", "root_angular_acceleration")}
     M, A = dyn.inertia_terms(helix, inertia, rates=rates, order=5, root_motion=motion)
     M_ref = ref.mass_matrix_numpy(helix, inertia, order=5)
