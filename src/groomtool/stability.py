@@ -96,7 +96,7 @@ def _scale_kernel(U, G, Dg, scale, u, v, d):
 def _dense(u, v, d, n_elements):
     """A (3n x 3n) from its generators (one strand, n real elements)."""
     out = np.empty((1, 3 * n_elements, 3 * n_elements))
-    sh._assemble_gravity_jacobian(u[None, :n_elements], np.swapaxes(v[None, :n_elements], -1, -2).copy(),
+    sh.assemble_gravity_jacobian(u[None, :n_elements], np.swapaxes(v[None, :n_elements], -1, -2).copy(),
                                   d[None, :n_elements], out)
     return out[0]
 

@@ -542,7 +542,7 @@ def gravity_force_jacobian(helix: SuperHelix, linear_density: float, gravity, ki
     U, G, diag = gravity_force_jacobian_parts(helix, linear_density, gravity, kin)
     S, N = helix.lengths.shape
     full = np.empty((S, 3 * N, 3 * N))
-    _assemble_gravity_jacobian(U, G, diag, full)
+    assemble_gravity_jacobian(U, G, diag, full)
     return full
 
 
@@ -660,7 +660,7 @@ def _gravity_hessian_kernel(l, w, z, c, dc, ddc, C, R, P, D, DP, Theta, g, rho, 
 
 
 @njit(cache=True)
-def _assemble_gravity_jacobian(U, G, diag, out):
+def assemble_gravity_jacobian(U, G, diag, out):
     """out[s] = the dense 3N x 3N matrix with blocks U_j G_k (j < k), (U_k G_j)^T (j > k), diag_j (j = k),
     written row after row."""
     S, N = U.shape[0], U.shape[1]
