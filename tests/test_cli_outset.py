@@ -141,7 +141,10 @@ def run_of_with(out, extra) -> int:
 
 
 def _child_writes(result, out):
-    """In a forked child: write sets 2, 3, 4, ... until killed."""
+    """In a forked child: write sets 2, 3, 4, ... until killed.  SIGINT raises KeyboardInterrupt even
+    where the test runner was started with SIGINT ignored (a background job of a non-interactive
+    shell inherits SIG_IGN, and the child would then write on until its 10,000 runs are done)."""
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
         for run in range(2, 10_000):
             write_result(stamped(result, run), out)
