@@ -296,6 +296,11 @@ def summary(result, written) -> str:
     return "\n".join(lines)
 
 
+def _count(n: int, noun: str) -> str:
+    """'1 strand', '2 strands'."""
+    return f"{n} {noun}" + ("" if n == 1 else "s")
+
+
 def repair_lines(repairs: dict | None) -> list[str]:
     """What --repair dropped, in input strand indices (rest.npz input_strand maps the output back)."""
     if not repairs:
@@ -305,9 +310,7 @@ def repair_lines(repairs: dict | None) -> list[str]:
         shown = ", ".join(str(v) for v in values[:10])
         return shown + (f", ... ({len(values)} in all)" if len(values) > 10 else "")
 
-    def count(n, noun):
-        return f"{n} {noun}" + ("" if n == 1 else "s")
-
+    count = _count
     dedup, dropped = repairs["deduplicated_strands"], repairs["dropped_strands"]
     lines = [f"  repaired     {count(repairs['dropped_points'], 'repeated point')} dropped from "
              f"{count(len(dedup), 'strand')}" + (f" ({ids(dedup)})" if dedup else "")]
@@ -322,7 +325,7 @@ def stability_lines(st: dict) -> list[str]:
     stiffening (report.json's stability, docs/outputs.md)."""
     lines = []
     if st["unstable_strands"]:
-        lines.append(f"  stability    {st['unstable_strands']} strands unstable in isolation with the input material "
+        lines.append(f"  stability    {_count(st['unstable_strands'], 'strand')} unstable in isolation with the input material "
                      f"(up to {st['required_young_modulus_factor']:.2f}x too soft to stand alone)")
     else:
         lines.append("  stability    every strand is a stable equilibrium on its own")
@@ -331,13 +334,14 @@ def stability_lines(st: dict) -> list[str]:
         return lines
     if stab["stiffened_strands"]:
         median = stab["median_stiffness_factor_of_stiffened"]
-        lines.append(f"  stiffened    {stab['stiffened_strands']} strands (E and G x{median:.2f} median, "
+        lines.append(f"  stiffened    {_count(stab['stiffened_strands'], 'strand')} (E and G x{median:.2f} median, "
                      f"x{stab['max_stiffness_factor']:.2f} max) so that the contacts and their stiffness "
                      "hold them: per-strand moduli in rest.npz")
     if stab["unstable_strands"]:
         advice = ("they will move in a simulation" if stab["mode"] == "stiffness"
                   else "--stabilize stiffness would stiffen them")
-        lines.append(f"  unstable     {stab['unstable_strands']} strands even with the contacts that hold them: {advice}")
+        lines.append(f"  unstable     {_count(stab['unstable_strands'], 'strand')} even with the contacts that hold them: "
+                     f"{advice}")
     elif st["unstable_strands"]:
         lines.append("               every strand is stable with the contacts and stiffness written")
     return lines
