@@ -315,8 +315,9 @@ class Simulator:
 
     def _build_problem(self, system: StepSystem, w: np.ndarray) -> None:
         """The contact problem u~ = W r~ + b~ with W = H Mhat^-1 H^T (dense Mhat^-1 blocks only for the
-        strands in contact, and of those only on the dofs up to their farthest contact's element), in impulse units r = r_scale r~, u = r_scale u~ (the block Gauss-Seidel
-        normalises every local problem, so W needs no scaling)."""
+        strands in contact, and of those only on the dofs up to their farthest contact's element), in
+        impulse units r = r_scale r~, u = r_scale u~ (the block Gauss-Seidel normalises every local
+        problem, so W needs no scaling)."""
         from .solvers import ContactProblem
 
         helix = system.helix
@@ -347,8 +348,9 @@ class Simulator:
         g = float(np.linalg.norm(self.gravity))
         r_scale = self.inertia.linear * float(np.mean(helix.strand_lengths)) * max(g * self.params.dt, 1e-3)
         mu = np.full(len(system.contacts.strand_a), self.friction)
-        system.problem = ContactProblem(H=H_moved, D_blocks=blocks, dof_offsets=np.concatenate([[0], np.cumsum(k[touched])]),
-                                        gamma=0.0, b=b / r_scale, mu=mu)
+        system.problem = ContactProblem(H=H_moved, D_blocks=blocks,
+                                        dof_offsets=np.concatenate([[0], np.cumsum(k[touched])]), gamma=0.0,
+                                        b=b / r_scale, mu=mu)
         system.r_scale = system.u_scale = r_scale
         system.r0 = (self.tracker.initial_impulses(system.contacts) / r_scale).ravel()
 

@@ -257,9 +257,9 @@ def factor_step_matrix(A: np.ndarray, B, n_elements: np.ndarray,
     factor as for an unmodified strand), so the eigendecomposition is only redone when the strand
     moved out of it; at rest the kept C is the fresh one.  A strand that no longer needs its C keeps it
     (unused while a/2 + b is positive definite), ready if it needs one again.  Without ``corrections``
-    every modified strand is decomposed anew.  A, B: (S, n, n) padded, for the strands first .. first + S - 1 of ``out`` (a
-    StrandFactors of the whole groom, filled in place; new when None, then first = 0).  Returns the
-    factors and the number of these strands whose step matrix was modified.  Compiled (LAPACK dpotrf
+    every modified strand is decomposed anew.  A, B: (S, n, n) padded, for the strands first .. first + S - 1
+    of ``out`` (a StrandFactors of the whole groom, filled in place; new when None, then first = 0).
+    Returns the factors and the number of these strands whose step matrix was modified.  Compiled (LAPACK dpotrf
     per strand), one eigendecomposition in Python per new C.
     """
     S, n_pad, _ = A.shape

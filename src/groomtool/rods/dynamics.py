@@ -96,7 +96,8 @@ def _max_node_speed_kernel(R, p, D, Theta, u, n_elements):
             V[1] += om[2] * y[0] - om[0] * y[2] + lin[1]
             V[2] += om[0] * y[1] - om[1] * y[0] + lin[2]
             for a in range(3):
-                om[a] += Theta[s, j, a, 0] * u[s, j, 0] + Theta[s, j, a, 1] * u[s, j, 1] + Theta[s, j, a, 2] * u[s, j, 2]
+                om[a] += (Theta[s, j, a, 0] * u[s, j, 0] + Theta[s, j, a, 1] * u[s, j, 1]
+                          + Theta[s, j, a, 2] * u[s, j, 2])
             speed = np.sqrt(V[0] * V[0] + V[1] * V[1] + V[2] * V[2])
             if speed > best:
                 best = speed
@@ -106,8 +107,8 @@ def _max_node_speed_kernel(R, p, D, Theta, u, n_elements):
 def _root_motion_arrays(S: int, root_motion: dict | None):
     def init(key):
         value = None if root_motion is None else root_motion.get(key)
-        return np.ascontiguousarray(np.broadcast_to(np.zeros(3) if value is None else np.asarray(value, dtype=np.float64),
-                                                    (S, 3)))
+        vector = np.zeros(3) if value is None else np.asarray(value, dtype=np.float64)
+        return np.ascontiguousarray(np.broadcast_to(vector, (S, 3)))
 
     return init("root_angular_velocity"), init("root_acceleration"), init("root_angular_acceleration")
 
@@ -373,8 +374,9 @@ def _inertia_kernel(l, w, z, C, R, Dl, Theta, n_elements, xg, wg, rhoS, rot, u, 
                     # own += w (rhoS Jo^T Jo + Jw^T II Jw)
                     for a in range(3):
                         for b in range(3):
-                            owne[j, a, b] += wq * (rhoS * (Jo[0, a] * Jo[0, b] + Jo[1, a] * Jo[1, b] + Jo[2, a] * Jo[2, b])
-                                                   + Jw[0, a] * T1[0, b] + Jw[1, a] * T1[1, b] + Jw[2, a] * T1[2, b])
+                            jj = Jo[0, a] * Jo[0, b] + Jo[1, a] * Jo[1, b] + Jo[2, a] * Jo[2, b]
+                            owne[j, a, b] += wq * (rhoS * jj + Jw[0, a] * T1[0, b] + Jw[1, a] * T1[1, b]
+                                                   + Jw[2, a] * T1[2, b])
                 if want_A:
                     for a in range(3):
                         f[a] = rhoS * acc[a]
