@@ -453,3 +453,15 @@ def test_projection_is_a_projection():
             d = z - p
             assert abs(d @ p) <= 1e-10 * np.linalg.norm(z) ** 2
             assert mu * np.linalg.norm(d[1:]) <= -d[0] + 1e-10 * np.linalg.norm(z) if mu > 0 else True
+
+
+def test_a_dense_block_is_stored_as_its_diagonal_only_when_it_is_exactly_diagonal():
+    H = sp.random(6, 4, density=0.8, random_state=2, format="csr")
+    d = np.array([1.0, 2.0, 0.0, 3.0])
+    diag = ContactProblem(H=H, D_blocks=[np.diag(d)], dof_offsets=[0, 4], gamma=0.0, b=np.zeros(6), mu=0.3)
+    assert diag.is_diagonal and np.array_equal(diag.D_blocks[0], d)  # a zero on the diagonal is still diagonal
+    for value in (1e-300, np.nan):
+        block = np.diag(d)
+        block[2, 1] = value
+        dense = ContactProblem(H=H, D_blocks=[block], dof_offsets=[0, 4], gamma=0.0, b=np.zeros(6), mu=0.3)
+        assert not dense.is_diagonal and dense.D_blocks[0].shape == (4, 4)

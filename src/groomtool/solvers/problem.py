@@ -69,9 +69,10 @@ class ContactProblem:
                 raise ValueError(f"diagonal D has {blocks.shape[0]} entries, expected {self.n_dofs}")
             blocks = [blocks[a:b] for a, b in zip(self.dof_offsets[:-1], self.dof_offsets[1:])]
         blocks = [np.asarray(d, dtype=np.float64) for d in blocks]
-        # a dense block that is exactly diagonal (e.g. np.diag(K^-2)) is stored as its diagonal
+        # a dense block that is exactly diagonal (e.g. np.diag(K^-2)) is stored as its diagonal: its nonzeros
+        # (NaN included) are all on the diagonal (counted without the two n x n temporaries of d - diag(d))
         blocks = [np.ascontiguousarray(np.diagonal(d)) if d.ndim == 2 and d.shape[0] == d.shape[1]
-                  and not np.any(d - np.diag(np.diagonal(d))) else d for d in blocks]
+                  and np.count_nonzero(d) == np.count_nonzero(np.diagonal(d)) else d for d in blocks]
         if len(blocks) != len(sizes):
             raise ValueError(f"{len(blocks)} D blocks for {len(sizes)} strands")
         for s, (d, k) in enumerate(zip(blocks, sizes)):
