@@ -215,8 +215,8 @@ def example_markdown(example, before=None) -> list[str]:
     lines = ["", "## The README example: stages per step of groom check's runs", "",
              f"{example['strands']} strands, {example['elements']} elements, contact radius 0.5 mm, all contacts; "
              f"{example['steps']} steps after the first per run (the first loads the kernels); OpenBLAS one thread; "
-             "**CPU time** (process_time: the machine was shared with other jobs, load average 4-9 on 2 cores; "
-             "wall-clock times were 2-4x larger and noisy). "
+             "**CPU time** (process_time: the machine is shared with other jobs, so wall-clock times are noisy; "
+             "'before' and 'after' were measured one after the other, at the same load). "
              + (f"'before' is {before.get('code', 'the previous code')}, " if before else "")
              + f"'after' {example.get('code', 'this code')}, measured on the same machine under the same load.", "",
              "| code | run | s/step mean (median) | contacts | GS sweeps per step | stages (s/step) |", "|---|---|---|---|---|---|"]
