@@ -389,6 +389,13 @@ def test_check_command_with_a_subset(inverted_dir, capsys):
     assert "2 of 3 strands" in out and "contact solves failed" in out
     report = json.loads((inverted_dir / "check.json").read_text())
     assert report["subset"]["checked"] == 2 and len(report["subset"]["checked_strands"]) == 2
+    # unstable strands among the simulated partners but none among the checked: said so, no crash
+    from groomtool.check import summary
+
+    report["unstable_in_isolation"] = 1
+    report["inverted"]["max_tip_drift_unstable_strands_m"] = None
+    assert f"1 of the {report['strands']} simulated strands are unstable" in summary(report)
+    assert "none of them is among the checked strands" in summary(report)
 
 
 # --------------------------------------------------------------------------- mass matrix assembly

@@ -291,8 +291,13 @@ def summary(report: dict) -> str:
         lines.append("  material  inverted run with the per-strand stiffness of rest.npz; naive run with the scalar material")
     lines.append("  contact   " + "; ".join(_solver_line(name, report[name]["solver"]) for name in ("inverted", "naive")))
     if report.get("unstable_in_isolation"):
-        lines.append(f"  note      {report['unstable_in_isolation']} strands are unstable without contacts (stiffness "
-                     f"ratio >= 1); their inverted max drift: {inv['max_tip_drift_unstable_strands_m'] * 1e3:.4f} mm")
+        drift = inv.get("max_tip_drift_unstable_strands_m")
+        # with --strands the drifts are over the checked strands, which may hold none of them
+        their = (f"their inverted max drift: {drift * 1e3:.4f} mm" if drift is not None
+                 else "none of them is among the checked strands")
+        among = (f" of the {report['strands']} simulated" if report.get("subset") else "")
+        lines.append(f"  note      {report['unstable_in_isolation']}{among} strands are unstable without contacts "
+                     f"(stiffness ratio >= 1); {their}")
     lines.append(f"  time      {report['timings_s']['total']:.1f} s ({inv['timings_s']['per_step'] * 1e3:.1f} ms/step "
                  f"inverted, {nai['timings_s']['per_step'] * 1e3:.1f} ms/step naive)")
     return "\n".join(lines)
