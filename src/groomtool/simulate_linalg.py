@@ -116,26 +116,12 @@ class StrandFactors:
         n = int(self.sizes[s])
         return self.data[self.ptr[s]:self.ptr[s + 1]].reshape(n, n)
 
-    def dense(self, n_pad: int | None = None) -> np.ndarray:
-        """Factors F_s = P L_s P with F_s F_s^T = Mhat_s (upper triangular), padded to (S, n, n) with the
-        identity (tests)."""
-        n_pad = int(self.sizes.max(initial=0)) if n_pad is None else n_pad
-        out = np.zeros((len(self.sizes), n_pad, n_pad))
-        for s, n in enumerate(self.sizes):
-            out[s, :n, :n] = self.factor(s)[::-1, ::-1]
-            out[s, np.arange(n, n_pad), np.arange(n, n_pad)] = 1.0
-        return out
-
     def solve(self, rhs: np.ndarray) -> np.ndarray:
         """x = Mhat^-1 rhs per strand; rhs (S, n_pad) padded (padding rows are copied: identity)."""
         rhs = np.ascontiguousarray(rhs, dtype=np.float64)
         out = rhs.copy()
         _solve_kernel(self.data, self.ptr, self.sizes, rhs, out)
         return out
-
-    def inverse(self, s: int) -> np.ndarray:
-        """Mhat_s^-1 (n_s, n_s), LAPACK dpotri."""
-        return self.leading_inverse(s, int(self.sizes[s]))
 
     def leading_inverse(self, s: int, k: int) -> np.ndarray:
         """(Mhat_s^-1)[:k, :k]: the inverse of the factor's trailing k x k block, reversed (LAPACK dpotri)."""

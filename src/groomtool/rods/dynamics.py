@@ -78,6 +78,7 @@ def _max_node_speed_kernel(R, p, D, Theta, u, n_elements):
     V = np.empty(3)
     om = np.empty(3)
     y = np.empty(3)
+    lin = np.empty(3)
     for s in range(R.shape[0]):
         V[:] = 0.0
         om[:] = 0.0
@@ -85,7 +86,7 @@ def _max_node_speed_kernel(R, p, D, Theta, u, n_elements):
             Rj = R[s, j]
             for a in range(3):
                 y[a] = Rj[a, 0] * p[s, j, 0] + Rj[a, 1] * p[s, j, 1] + Rj[a, 2] * p[s, j, 2]
-            lin = np.zeros(3)
+            lin[:] = 0.0
             for a in range(3):
                 for b in range(3):
                     acc = 0.0
@@ -104,11 +105,13 @@ def _max_node_speed_kernel(R, p, D, Theta, u, n_elements):
     return best
 
 
-def _root_motion_arrays(S: int, root_motion: dict | None):
+def _root_motion_arrays(S: int, root_motion: dict | None, a: int, b: int):
+    """The root's angular velocity, acceleration and angular acceleration of strands a..b-1, (b - a, 3) each
+    (zero without ``root_motion``; its values (S, 3) or (3,))."""
     def init(key):
         value = None if root_motion is None else root_motion.get(key)
         vector = np.zeros(3) if value is None else np.asarray(value, dtype=np.float64)
-        return np.ascontiguousarray(np.broadcast_to(vector, (S, 3)))
+        return np.ascontiguousarray(np.broadcast_to(vector, (S, 3))[a:b])
 
     return init("root_angular_velocity"), init("root_acceleration"), init("root_angular_acceleration")
 
@@ -134,7 +137,7 @@ def inertia_terms(helix: SuperHelix, inertia: Inertia, kin: Kinematics | None = 
     want_A = rates is not None
     u = (part(np.asarray(rates, dtype=np.float64).reshape(helix.curvatures.shape)) if want_A
          else np.zeros((S, N, 3)))
-    om0, acc0, al0 = (np.ascontiguousarray(x[a:b]) for x in _root_motion_arrays(helix.n_strands, root_motion))
+    om0, acc0, al0 = _root_motion_arrays(helix.n_strands, root_motion, a, b)
     M = np.zeros((S, 3 * N, 3 * N)) if mass else np.zeros((1, 1, 1))
     A = np.zeros((S, N, 3))
     _inertia_kernel(part(helix.lengths), part(helix.curvatures), part(kin.z), part(kin.C, 1), part(kin.R, 1),
@@ -197,7 +200,8 @@ def _cross_add(a, b, scale, out):
 @njit(cache=True)
 def _local_frame(t, w, z, buf, psi0, psi1, Dt, p2, dpsi, u, want_motion):
     """At t along an element of curvature w (z = |w|^2): Psi_0(t), Psi_1(t), D(t) = dp/dw and, with
-    ``want_motion``, p''[u, u] and dPsi_1[u] u (the formulas of tests/reference/dynamics.py, _second_directional)."""
+    ``want_motion``, p''[u, u] and dPsi_1[u] u (the formulas of _second_directional in
+    tests/reference/dynamics.py)."""
     t2 = t * t
     _f_point(z * t2, 2, buf)
     c1 = t * buf[0, 1]
