@@ -192,6 +192,11 @@ def example_stages(outdir, steps: int, skin=None, cpu_time: bool = True) -> dict
     return out
 
 
+def stage_list(stages: dict) -> str:
+    """'solve 0.069, contact_setup 0.058, ...': the stages of a step, slowest first."""
+    return ", ".join(f"{k} {v:.3f}" for k, v in sorted(stages.items(), key=lambda kv: -kv[1]))
+
+
 def timing_markdown(timings: dict) -> list[str]:
     """Per-step CPU time of inversion output directories (--timing-dirs), both runs of groom check."""
     lines = ["", "## Time per step of groom check's runs on inversion outputs (CPU time, steps after the first)", "",
@@ -202,7 +207,7 @@ def timing_markdown(timings: dict) -> list[str]:
             b = t.get(run)
             if not b:
                 continue
-            stages = ", ".join(f"{k} {v:.3f}" for k, v in sorted(b["stages_s_per_step"].items(), key=lambda kv: -kv[1]))
+            stages = stage_list(b["stages_s_per_step"])
             sw = b["sweeps"]
             lines.append(f"| {name} | {t['strands']} | {t['elements']} | {run} | {b['s_per_step_mean']:.3f} "
                          f"({b['s_per_step_median']:.3f}) | {b['contacts_mean']:.0f} | {min(sw)}-{max(sw)} | "
@@ -225,7 +230,7 @@ def example_markdown(example, before=None) -> list[str]:
             continue
         for name in ("inverted", "naive"):
             b = ex[name]
-            stages = ", ".join(f"{k} {v:.3f}" for k, v in sorted(b["stages_s_per_step"].items(), key=lambda kv: -kv[1]))
+            stages = stage_list(b["stages_s_per_step"])
             sw = b["sweeps"]
             lines.append(f"| {label} | {name} | {b['s_per_step_mean']:.3f} ({b['s_per_step_median']:.3f}) | "
                          f"{b['contacts_mean']:.0f} | {min(sw)}-{max(sw)} | {stages} |")

@@ -310,12 +310,11 @@ def repair_lines(repairs: dict | None) -> list[str]:
         shown = ", ".join(str(v) for v in values[:10])
         return shown + (f", ... ({len(values)} in all)" if len(values) > 10 else "")
 
-    count = _count
     dedup, dropped = repairs["deduplicated_strands"], repairs["dropped_strands"]
-    lines = [f"  repaired     {count(repairs['dropped_points'], 'repeated point')} dropped from "
-             f"{count(len(dedup), 'strand')}" + (f" ({ids(dedup)})" if dedup else "")]
+    lines = [f"  repaired     {_count(repairs['dropped_points'], 'repeated point')} dropped from "
+             f"{_count(len(dedup), 'strand')}" + (f" ({ids(dedup)})" if dedup else "")]
     if dropped:
-        lines.append(f"               {count(len(dropped), 'strand')} of fewer than 2 distinct points dropped "
+        lines.append(f"               {_count(len(dropped), 'strand')} of fewer than 2 distinct points dropped "
                      f"({ids(dropped)}); rest.npz input_strand maps output strands to input ones")
     return lines
 
