@@ -192,6 +192,17 @@ def example_stages(outdir, steps: int, skin=None, cpu_time: bool = True) -> dict
     return out
 
 
+def inversion_of(outdir) -> dict:
+    """How an inversion output directory was made (its report.json): input, units, contacts, radius, stabilisation."""
+    path = Path(outdir) / "report.json"
+    if not path.is_file():
+        return {}
+    r = json.loads(path.read_text())
+    p = r.get("parameters", {})
+    return {"input": r.get("input"), "units": r.get("input_units", "m"), "contacts": p.get("contacts"),
+            "contact_radius_m": p.get("contact_radius_m"), "stabilize": p.get("stabilize")}
+
+
 def stage_list(stages: dict) -> str:
     """'solve 0.069, contact_setup 0.058, ...': the stages of a step, slowest first."""
     return ", ".join(f"{k} {v:.3f}" for k, v in sorted(stages.items(), key=lambda kv: -kv[1]))
@@ -202,7 +213,14 @@ def timing_markdown(timings: dict) -> list[str]:
     lines = ["", "## Time per step of groom check's runs on inversion outputs (CPU time, steps after the first)", "",
              "| groom | strands | elements | run | s/step mean (median) | contacts | GS sweeps | modified step "
              "matrices per step | peak RSS (MB) | stages (s/step) |", "|---|---|---|---|---|---|---|---|---|---|"]
+    made = []
     for name, t in timings.items():
+        inv = t.get("inversion") or {}
+        if inv:
+            radius = f" --contact-radius {inv['contact_radius_m']:g}" if inv.get("contact_radius_m") else ""
+            made.append(f"- {name}: `groom invert {inv['input']} --units {inv['units']} --head HEAD --contacts "
+                        f"{inv['contacts']}{radius}` (stabilize {inv['stabilize']}), then `python bench/bench_simulate.py "
+                        f"--keep-styles --keep-big --timing-dirs '{name}=OUT' --steps {t['steps']}`")
         for run in ("inverted", "naive"):
             b = t.get(run)
             if not b:
@@ -213,7 +231,10 @@ def timing_markdown(timings: dict) -> list[str]:
                          f"({b['s_per_step_median']:.3f}) | {b['contacts_mean']:.0f} | {min(sw)}-{max(sw)} | "
                          f"{b.get('modified_step_matrices_per_step', float('nan')):.0f} | "
                          f"{b.get('peak_rss_mb', float('nan')):.0f} | {stages} |")
-    return lines
+    if made:
+        made.append("- inputs: example.obj and head.obj of `groom example --strands 1000 DIR`; harolongo's HEAD is "
+                    "../shared/data/digital-salon/Retopologised_Female_Head_01_mod.obj")
+    return lines + ([""] + made if made else [])
 
 
 def example_markdown(example, before=None) -> list[str]:
@@ -224,6 +245,9 @@ def example_markdown(example, before=None) -> list[str]:
              "'before' and 'after' were measured one after the other, at the same load). "
              + (f"'before' is {before.get('code', 'the previous code')}, " if before else "")
              + f"'after' {example.get('code', 'this code')}, measured on the same machine under the same load.", "",
+             "Command: `python bench/bench_simulate.py --keep-styles --keep-big --example-dir example/out "
+             "--example-steps 6 --example-before BEFORE.json --example-label LABEL` (BEFORE.json: example_stages "
+             "run on the previous code).", "",
              "| code | run | s/step mean (median) | contacts | GS sweeps per step | stages (s/step) |", "|---|---|---|---|---|---|"]
     for label, ex in (("before", before), ("after", example)):
         if not ex:
@@ -256,7 +280,8 @@ def markdown(rows, big, meta, example=None, before=None, timings=None) -> str:
             f"{100 * r['inverted_curvature_change']:.2e} % / {100 * r['naive_curvature_change']:.1f} % | "
             f"{r['inverted_ms_per_step']:.0f} / {r['naive_ms_per_step']:.0f} | {verdict} |")
     if big:
-        lines += ["", f"## Time per step: {big['groom']} with all contacts (contact radius 0.3 mm)", "",
+        lines += ["", f"## Time per step: {big['groom']} with all contacts (contact radius 0.3 mm), "
+                  "measured before the simulator work of issue 15 (kept for comparison: `--keep-big`)", "",
                   f"{big['strands']} strands, {big['elements']} elements (up to {big['max_elements']} per strand); "
                   f"inversion: {json.dumps(big['inversion'])}", "",
                   "| run | s/step (mean) | first / last | contacts | GS sweeps | modified step matrices | stages (s/step) |",
@@ -325,9 +350,13 @@ def main(argv=None) -> int:
     if args.example_dir and args.example_label:
         example["code"] = args.example_label
     timings = dict(previous.get("timings") or {})
+    for t in timings.values():
+        if not t.get("inversion"):
+            t["inversion"] = inversion_of(t["dir"])
     for spec in args.timing_dirs or []:
         name, _, path = spec.partition("=")
         timings[name] = example_stages(path, args.steps)
+        timings[name]["inversion"] = inversion_of(path)
         print(f"{name}: " + ", ".join(f"{run} {timings[name][run]['s_per_step_mean']:.2f} s/step"
                                        for run in ("inverted", "naive")), flush=True)
     before = json.loads(Path(args.example_before).read_text()) if args.example_before else previous.get("example_before")
