@@ -227,7 +227,7 @@ def solve_inverse_problem(problem: InverseProblem, helix: sh.SuperHelix, params,
 
     def run(method):
         with progress(params.max_iterations, f"contact solve ({method}, {m:,} contacts)", quiet,
-                       unit="sweep") as bar:
+                      unit="sweep", budget=True) as bar:
             shown = {"residual": math.nan, "q0": math.nan, "sweeps": 0, "history": []}
 
             def postfix():
