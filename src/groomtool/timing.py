@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import time
 
 
@@ -31,9 +32,45 @@ class Timer:
 def progress(total, desc, quiet, unit="strand", budget: bool = False):
     """A tqdm bar (off when ``quiet``), left off the screen when done.  ``budget``: ``total`` is an upper
     bound (a sweep budget a solver usually stops well before), so the bar shows no time left extrapolated
-    to it (that read 42 minutes for a 6 s solve); its postfix says what is known instead."""
+    to it (that read 42 minutes for a 6 s solve); its postfix says what is known instead.
+
+    The time left is measured on the items after the first (which pays the loading of the numba kernels:
+    extrapolated from it, "stability with contacts" showed 3 minutes for a 1 s run) and shown only once
+    ``ETA_AFTER_ITEMS`` of them took ``ETA_AFTER_S`` seconds; until then it reads ``?``."""
+    fmt = "{desc}: {percentage:3.0f}%|{bar}| {n_fmt}/{total_fmt} [{elapsed}, {rate_fmt}{postfix}]" if budget else None
+    return _bar_class()(total=total, desc=desc, disable=quiet, unit=unit, leave=False, bar_format=fmt)
+
+
+ETA_AFTER_ITEMS = 2  # items after the first before a time left is shown
+ETA_AFTER_S = 0.5  # ... and seconds they took
+_UNMEASURED = "{desc}: {percentage:3.0f}%|{bar}| {n_fmt}/{total_fmt} [{elapsed}<?{postfix}]"
+
+
+@functools.cache
+def _bar_class():
     from tqdm.auto import tqdm  # 50 ms: kept off the CLI's start
 
-    fmt = "{desc}: {percentage:3.0f}%|{bar}| {n_fmt}/{total_fmt} [{elapsed}, {rate_fmt}{postfix}]" if budget else None
-    return tqdm(total=total, desc=desc, disable=quiet, unit=unit, leave=False, bar_format=fmt)
+    class Bar(tqdm):
+        """tqdm whose rate (and so its time left) counts only the items after the first."""
 
+        _first = None  # (time, n) when the first item was done
+
+        def update(self, n=1):
+            if not self.disable and self._first is None and self.n + n >= 1:
+                self._first = (self._time(), self.n + n)  # before the refresh that update may make
+            return super().update(n)
+
+        @property
+        def format_dict(self):
+            d = super().format_dict
+            if self.disable or self.bar_format is not None:  # off, or a budget bar (no time left shown)
+                return d
+            done = self.n - self._first[1] if self._first else 0
+            took = self._time() - self._first[0] if self._first else 0.0
+            if done >= ETA_AFTER_ITEMS and took >= ETA_AFTER_S:
+                d["rate"] = done / took
+            else:
+                d["bar_format"] = _UNMEASURED
+            return d
+
+    return Bar
