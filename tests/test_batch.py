@@ -261,6 +261,64 @@ def test_a_worker_killed_mid_write_is_retried_and_nothing_is_half_written(client
     assert_nothing_half_written(out)  # the killed worker's staging directory is gone too
 
 
+@pytest.mark.parametrize("costs, workers", [([1.0] * 343, 2), ([5.0, 1.0, 1.0, 30.0, 2.0] * 40, 2),
+                                            ([7.0, 3.0, 1.0], 2), ([1.0] * 10, 8), ([0.0] * 5, 2)])
+def test_plan_tasks_covers_every_groom_once_largest_first_with_small_tasks_last(costs, workers):
+    groups = batch.plan_tasks(costs, workers=workers)
+    flat = [i for g in groups for i in g]
+    assert sorted(flat) == list(range(len(costs)))  # every groom, exactly once
+    ordered = [costs[i] for i in flat]
+    assert ordered == sorted(costs, reverse=True)  # largest first
+    assert len(groups[-1]) == 1  # the tail is single grooms: the workers finish together
+    totals = [sum(costs[i] for i in g) for g in groups]
+    assert all(a >= b - 1e-12 for a, b in zip(totals, totals[1:])) or max(totals) == min(totals)
+    if len(costs) >= 100 and len(set(costs)) == 1:  # many equal small grooms: far fewer tasks than grooms
+        assert len(groups) < len(costs) / 5
+
+
+def test_a_task_group_whose_worker_dies_is_rerun_groom_by_groom(client, data, tmp_path, monkeypatch):
+    """Small grooms are grouped into tasks (plan_tasks); when a group's worker dies, its grooms are rerun
+    one task each, so only a groom that kills its worker itself can be lost.  Here every group task
+    kills its worker, and the plan is one group of all the grooms."""
+
+    class KillGroups(distributed.WorkerPlugin):
+        def __init__(self, marker):
+            self.marker = marker
+
+        def transition(self, key, start, finish, **kwargs):
+            if finish == "executing" and "+" in str(key):
+                with open(self.marker, "a") as f:
+                    f.write(f"{key}\n")
+                os._exit(1)
+
+    def allowed_failures(n):
+        def set_it(dask_scheduler):
+            dask_scheduler.allowed_failures = n
+        client.run_on_scheduler(set_it)
+
+    many = tmp_path / "many"
+    many.mkdir()
+    names = [f"m{k}" for k in range(4)]
+    for n in names:
+        (many / f"{n}.obj").write_bytes((data / "g0.obj").read_bytes())
+    monkeypatch.setattr(batch, "plan_tasks", lambda costs, workers: [list(range(len(costs)))])
+    out = tmp_path / "out"
+    marker = tmp_path / "killed"
+    client.register_plugin(KillGroups(str(marker)), name="kill-groups")
+    allowed_failures(0)
+    try:
+        summary = batch.run_batch([many / f"{n}.obj" for n in names], out, head=data / "head.obj", params=PARAMS,
+                                  client=client, quiet=True)
+    finally:
+        allowed_failures(3)
+        client.unregister_worker_plugin("kill-groups")
+    assert marker.read_text().startswith("invert-m0+3-"), "the group task was not killed: the test proves nothing"
+    assert [r["name"] for r in summary.rows] == names
+    assert [r["status"] for r in summary.rows] == ["ok"] * len(names), summary.failed()
+    assert summary.exit_code == 0
+    assert_nothing_half_written(out)
+
+
 def test_a_worker_that_always_dies_is_reported_after_the_retries(client, data, tmp_path):
     """allowed-failures is the retry budget: a groom whose worker dies every time is 'worker_lost'.
     (Last in this module: it restarts the shared cluster's workers.)"""
