@@ -64,3 +64,17 @@ def test_budget_bar_and_quiet_bar():
     quiet = timing.progress(5, "x", quiet=True)
     quiet.update(1)
     quiet.close()
+
+
+def test_reset_measures_again():
+    bar, clock = _bar(10)
+    for i in range(1, 6):
+        clock.t = float(i)
+        bar.update(1)
+    assert _eta(bar) == 5
+    bar.reset(total=10)  # held_stiffness_ratios resets its bar to the strands it checks
+    bar.start_t = clock.t
+    clock.t += 30.0
+    bar.update(1)
+    assert _eta(bar) is None  # a first item again, not extrapolated
+    bar.close()
