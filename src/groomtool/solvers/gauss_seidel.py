@@ -111,6 +111,29 @@ def _local_update(law, mu, s, An, Ainv, ok, i, c0, c1, c2, r, omega, tol, max_ne
     return solve_block(law, mu[i], si, A, Ai, ok[i], c0, c1, c2, r0, r1, r2, tol, max_newton, atol)
 
 
+@njit(cache=True, inline="always", fastmath=_FM)
+def _solve_row(law, i, indptr, indices, blocks, b, mu, s, An, Ainv, ok, omega, r, acc, tol, max_newton, atol):
+    """Row i of a sweep on the upper block triangle: c_i = b_i + acc_i + sum_{j > i} W_ij r_j (the diagonal
+    block comes first in the row; its term s_i An_i r_i is left out of c_i), the local solve, r_i written.
+    Returns (1 if the local solve failed else 0, r_i)."""
+    u0 = b[i, 0] + acc[i, 0]
+    u1 = b[i, 1] + acc[i, 1]
+    u2 = b[i, 2] + acc[i, 2]
+    for p in range(indptr[i] + 1, indptr[i + 1]):
+        j = indices[p]
+        x0 = r[j, 0]
+        x1 = r[j, 1]
+        x2 = r[j, 2]
+        u0 += blocks[p, 0, 0] * x0 + blocks[p, 0, 1] * x1 + blocks[p, 0, 2] * x2
+        u1 += blocks[p, 1, 0] * x0 + blocks[p, 1, 1] * x1 + blocks[p, 1, 2] * x2
+        u2 += blocks[p, 2, 0] * x0 + blocks[p, 2, 1] * x1 + blocks[p, 2, 2] * x2
+    st, n0, n1, n2 = _local_update(law, mu, s, An, Ainv, ok, i, u0, u1, u2, r, omega, tol, max_newton, atol)
+    r[i, 0] = n0
+    r[i, 1] = n1
+    r[i, 2] = n2
+    return (1 if st == FAILED else 0), n0, n1, n2
+
+
 @njit(cache=True, fastmath=_FM)
 def sweep_upper(law, indptr, indices, blocks, b, mu, s, An, Ainv, ok, omega, r, acc, tol, max_newton, atol):
     """One forward sweep on the upper block triangle of W (natural order): c_i = b_i + acc_i +
@@ -123,27 +146,11 @@ def sweep_upper(law, indptr, indices, blocks, b, mu, s, An, Ainv, ok, omega, r, 
         acc[i, 2] = 0.0
     fails = 0
     for i in range(m):
-        u0 = b[i, 0] + acc[i, 0]
-        u1 = b[i, 1] + acc[i, 1]
-        u2 = b[i, 2] + acc[i, 2]
-        p0 = indptr[i] + 1  # the diagonal block comes first; its term is s_i An_i r_i, left out of c_i
-        p1 = indptr[i + 1]
-        for p in range(p0, p1):
-            j = indices[p]
-            x0 = r[j, 0]
-            x1 = r[j, 1]
-            x2 = r[j, 2]
-            u0 += blocks[p, 0, 0] * x0 + blocks[p, 0, 1] * x1 + blocks[p, 0, 2] * x2
-            u1 += blocks[p, 1, 0] * x0 + blocks[p, 1, 1] * x1 + blocks[p, 1, 2] * x2
-            u2 += blocks[p, 2, 0] * x0 + blocks[p, 2, 1] * x1 + blocks[p, 2, 2] * x2
-        st, n0, n1, n2 = _local_update(law, mu, s, An, Ainv, ok, i, u0, u1, u2, r, omega, tol, max_newton, atol)
-        if st == FAILED:
-            fails += 1
-        r[i, 0] = n0
-        r[i, 1] = n1
-        r[i, 2] = n2
+        failed, n0, n1, n2 = _solve_row(law, i, indptr, indices, blocks, b, mu, s, An, Ainv, ok, omega, r, acc,
+                                        tol, max_newton, atol)
+        fails += failed
         if n0 != 0.0 or n1 != 0.0 or n2 != 0.0:
-            for p in range(p0, p1):
+            for p in range(indptr[i] + 1, indptr[i + 1]):
                 j = indices[p]
                 acc[j, 0] += blocks[p, 0, 0] * n0 + blocks[p, 1, 0] * n1 + blocks[p, 2, 0] * n2
                 acc[j, 1] += blocks[p, 0, 1] * n0 + blocks[p, 1, 1] * n1 + blocks[p, 2, 1] * n2
@@ -157,26 +164,11 @@ def sweep_upper_backward(law, indptr, indices, blocks, b, mu, s, An, Ainv, ok, o
     with r_j (j > i) this sweep's new values and acc_i = sum_{j < i} W_ji^T r_j as the forward sweep left it
     (rows j < i are not yet touched by this sweep, so acc_i is still exact).  Every block is read once, only
     gathered.  Forward + backward is symmetric Gauss-Seidel.  Returns local failures."""
-    m = indptr.shape[0] - 1
     fails = 0
-    for i in range(m - 1, -1, -1):
-        u0 = b[i, 0] + acc[i, 0]
-        u1 = b[i, 1] + acc[i, 1]
-        u2 = b[i, 2] + acc[i, 2]
-        for p in range(indptr[i] + 1, indptr[i + 1]):
-            j = indices[p]
-            x0 = r[j, 0]
-            x1 = r[j, 1]
-            x2 = r[j, 2]
-            u0 += blocks[p, 0, 0] * x0 + blocks[p, 0, 1] * x1 + blocks[p, 0, 2] * x2
-            u1 += blocks[p, 1, 0] * x0 + blocks[p, 1, 1] * x1 + blocks[p, 1, 2] * x2
-            u2 += blocks[p, 2, 0] * x0 + blocks[p, 2, 1] * x1 + blocks[p, 2, 2] * x2
-        st, n0, n1, n2 = _local_update(law, mu, s, An, Ainv, ok, i, u0, u1, u2, r, omega, tol, max_newton, atol)
-        if st == FAILED:
-            fails += 1
-        r[i, 0] = n0
-        r[i, 1] = n1
-        r[i, 2] = n2
+    for i in range(indptr.shape[0] - 2, -1, -1):
+        failed, _, _, _ = _solve_row(law, i, indptr, indices, blocks, b, mu, s, An, Ainv, ok, omega, r, acc,
+                                     tol, max_newton, atol)
+        fails += failed
     return fails
 
 
