@@ -227,6 +227,24 @@ def test_unknown_formats(tmp_path):
         save_groom(random_groom(0, 1), tmp_path / "g.ply")
 
 
+def test_one_format_table():
+    """io/formats.py is the one table of suffixes: dispatch's maps, the result exporters, the writers'
+    own suffix checks and `groom invert --help` (every readable suffix) agree with it."""
+    from groomtool.cli.export_cmd import FORMATS as CLI_FORMATS
+    from groomtool.cli.main import build_parser
+    from groomtool.io import READERS, WRITERS, export, formats
+
+    assert sorted(READERS) == sorted(s for f in formats.FORMATS if f.reads for s in f.suffixes)
+    assert sorted(WRITERS) == sorted(s for f in formats.FORMATS if f.writes for s in f.suffixes)
+    exported = {f.name: f.suffixes for f in formats.FORMATS if f.exports}
+    assert exported == export.SUFFIXES and tuple(exported) == CLI_FORMATS
+    every = [suffix for f in formats.FORMATS for suffix in f.suffixes]
+    assert len(set(every)) == len(every) and all(suffix == suffix.lower() and suffix[0] == "." for suffix in every)
+    invert = build_parser()._subparsers._group_actions[0].choices["invert"]
+    help_text = next(a.help for a in invert._actions if a.dest == "input")
+    assert all(suffix in help_text for suffix in READERS)
+
+
 def test_usd_without_usd_core(tmp_path, monkeypatch):
     import groomtool.io
 

@@ -29,6 +29,7 @@ import numpy as np
 from ..groom import Groom, GroomError
 from ..material import Material
 from .atomic import atomic_path
+from .formats import suffixes
 from .validate import validate
 
 CM = 100.0  # Unreal's grooms are in centimetres
@@ -55,7 +56,7 @@ def write_alembic(source, path, per_element: int = 8, guides: bool = False) -> P
 
     path = Path(path)
     Abc, AbcGeom, imath = _modules(path)
-    if path.suffix.lower() != ".abc":
+    if path.suffix.lower() not in suffixes("abc"):
         raise GroomError(f"{path}: Alembic files end in .abc")
     arrays = load_arrays(source)
     samples = fields.sample(arrays, per_element)

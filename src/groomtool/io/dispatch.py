@@ -1,4 +1,4 @@
-"""``load_groom`` / ``save_groom``: pick the reader or writer from the file extension."""
+"""``load_groom`` / ``save_groom``: pick the reader or writer from the file extension (formats.py's table)."""
 
 from __future__ import annotations
 
@@ -6,13 +6,11 @@ from pathlib import Path
 
 from ..groom import Groom, GroomError
 from .common import check_input, unit_scale
+from .formats import FORMATS
 from .hair import read_hair, write_hair
 from .obj import read_obj, write_obj
 from .ply import read_ply
 from .usc import read_data, write_data
-
-USD_SUFFIXES = (".usd", ".usda", ".usdc", ".usdz")
-WRITERS = {".obj": write_obj, ".data": write_data, ".hair": write_hair}
 
 
 def _read_usd(path, scale, up, repair):
@@ -33,9 +31,13 @@ def _read_alembic(path, scale, up, repair):
     return read_alembic(path, scale=scale, up=up, repair=repair)
 
 
-READERS = {".obj": read_obj, ".ply": read_ply, ".data": read_data, ".hair": read_hair, ".abc": _read_alembic}
-READERS.update(dict.fromkeys(USD_SUFFIXES, _read_usd))
-SPLITTABLE = (".obj", ".ply")  # formats of bare vertices that strand_length applies to
+# the readers and writers of grooms by format name; by suffix from formats.FORMATS
+READER_OF = {"usd": _read_usd, "abc": _read_alembic, "hair": read_hair, "obj": read_obj, "data": read_data,
+             "ply": read_ply}
+WRITER_OF = {"hair": write_hair, "obj": write_obj, "data": write_data}
+READERS = {suffix: READER_OF[f.name] for f in FORMATS if f.reads for suffix in f.suffixes}
+WRITERS = {suffix: WRITER_OF[f.name] for f in FORMATS if f.writes for suffix in f.suffixes}
+SPLITTABLE = tuple(suffix for f in FORMATS if f.splittable for suffix in f.suffixes)  # strand_length applies
 
 
 def load_groom(path, units="m", up: str = "y", repair: bool = False, strand_length=None) -> Groom:

@@ -33,6 +33,7 @@ from ..version import __version__
 from . import fields
 from .atomic import atomic_path
 from .fields import consumer_rest_data, frames_to_quaternions, quaternions_to_frames, rod_polyline_data
+from .formats import suffixes
 from .results import head_mesh, load_arrays
 from .validate import validate
 
@@ -65,7 +66,7 @@ def write_usd(source, path, per_element: int = 8, head=None) -> Path:
     arrays = load_arrays(source)
     path = Path(path)
     suffix = path.suffix.lower()
-    if suffix not in (".usda", ".usdc", ".usd", ".usdz"):
+    if suffix not in suffixes("usd"):
         raise GroomError(f"{path}: USD files end in .usda, .usdc, .usd or .usdz")
     stage = build_stage(arrays, per_element, head)
     with atomic_path(path) as tmp:

@@ -15,6 +15,7 @@ import numpy as np
 from ..groom import GroomError
 from . import fields
 from .atomic import atomic_path
+from .formats import suffixes
 from .results import head_mesh, load_arrays
 
 SHAPES = ("fitted", "rest")
@@ -75,7 +76,7 @@ def write_vtp(source, path, per_element: int = 8, shape: str = "fitted", head_pa
     there (.vtp), when the result has one.  Binary XML, written atomically; returns the path.
     """
     path = Path(path)
-    if path.suffix.lower() != ".vtp":
+    if path.suffix.lower() not in suffixes("vtp"):
         raise GroomError(f"{path}: VTK PolyData files end in .vtp")
     arrays = load_arrays(source)
     poly = strands_polydata(arrays, per_element, shape)
