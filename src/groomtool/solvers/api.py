@@ -86,23 +86,23 @@ def _resolve_method(law: str, method: str) -> str:
     return method
 
 
-def _run_gs_family(op, law, method, tol, max_iter, r0, options, info):
+def _run_gs_family(op, law, method, tol, max_sweeps, r0, options, info):
     """Gauss-Seidel (SOC or Coulomb), the Coulomb fixed point, or 'auto' (GS, then fixed point if it
     stalls).  Returns (r, iterations, converged, residual of the solver)."""
     if method == "fixed_point":
         fp_opts = {k: v for k, v in options.items() if k in ("anderson", "time_limit", "check_every", "max_outer", "scale")}
-        out = run_coulomb_fixed_point(op, tol=tol, max_sweeps=max_iter, r0=r0, **fp_opts)
+        out = run_coulomb_fixed_point(op, tol=tol, max_sweeps=max_sweeps, r0=r0, **fp_opts)
         info.update(local_failures=out.local_failures, history=out.history, outer_iterations=out.outer,
                     solve_s=out.solve_s)
         return out.r, out.sweeps, out.converged, out.residual
     stall = COULOMB_STALL_WINDOW if method == "auto" else None
-    out = run_gauss_seidel(op, law, tol=tol, max_sweeps=max_iter, r0=r0, stall_window=stall, **options)
+    out = run_gauss_seidel(op, law, tol=tol, max_sweeps=max_sweeps, r0=r0, stall_window=stall, **options)
     info.update(local_failures=out.local_failures, history=out.history, solve_s=out.solve_s)
     if out.newton is not None:
         info["newton"] = out.newton
-    if method == "auto" and not out.converged and out.sweeps < max_iter and np.isfinite(out.residual):
+    if method == "auto" and not out.converged and out.sweeps < max_sweeps and np.isfinite(out.residual):
         fp_opts = {k: v for k, v in options.items() if k in ("anderson", "time_limit", "check_every", "scale")}
-        fp = run_coulomb_fixed_point(op, tol=tol, max_sweeps=max_iter - out.sweeps, r0=out.r, **fp_opts)
+        fp = run_coulomb_fixed_point(op, tol=tol, max_sweeps=max_sweeps - out.sweeps, r0=out.r, **fp_opts)
         info.update(switched_to="fixed_point", gs_sweeps=out.sweeps, outer_iterations=fp.outer,
                     local_failures=out.local_failures + fp.local_failures,
                     history=out.history + [(out.sweeps + h[0], h[1], out.solve_s + h[2]) for h in fp.history[1:]],
@@ -227,7 +227,9 @@ def solve_socqp(W, b, mu, method: str = "gs", tol: float = 1e-8, max_iter: int |
     W: scipy sparse (3m, 3m) symmetric PSD in 3x3 blocks, normal first in each block; b: (3m,);
     mu: scalar or (m,).  method: "gs" (block Gauss-Seidel + Anderson acceleration + subspace Newton steps), "apgd", "clarabel"
     (interior point, then Gauss-Seidel sweeps from its optimum until the residual is below tol), "auto"
-    (= "gs").  tol: on the residual of residual.py (every method).
+    (= "gs").  tol: on the residual of residual.py (every method).  max_iter: the method's own budget
+    (DEFAULT_MAX_ITER): Gauss-Seidel sweeps for gs and fixed_point (run_gauss_seidel's ``max_sweeps``, the
+    CLI's --max-sweeps), iterations for apgd and clarabel.
     options: gs: anderson=8 (memory; 0 = no Anderson), anderson_start=10, newton=20 (subspace Newton steps on
     the faces the sweeps identified, tried at the residual checks from this sweep on; None = off, then with
     anderson=0 plain Gauss-Seidel), newton_every=10, newton_cg=(30, 200), omega=1.0, order="natural",
