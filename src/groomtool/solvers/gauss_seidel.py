@@ -172,6 +172,20 @@ def sweep_upper_backward(law, indptr, indices, blocks, b, mu, s, An, Ainv, ok, o
     return fails
 
 
+@njit(cache=True, inline="always", fastmath=_FM)
+def _packed_row(i, ptr, cols, vals, v, gamma2, r, b):
+    """u_i = b_i + 2 gamma r_i + H_i v, H_i contact i's packed panel (v = D H^T r)."""
+    u0 = b[i, 0] + gamma2 * r[i, 0]
+    u1 = b[i, 1] + gamma2 * r[i, 1]
+    u2 = b[i, 2] + gamma2 * r[i, 2]
+    for p in range(ptr[i], ptr[i + 1]):
+        x = v[cols[p]]
+        u0 += vals[p, 0] * x
+        u1 += vals[p, 1] * x
+        u2 += vals[p, 2] * x
+    return u0, u1, u2
+
+
 @njit(cache=True, fastmath=_FM)
 def sweep_matrix_free(
     law, order, h_ptr, h_cols, h_vals, g_ptr, g_cols, g_vals, gamma2, b, mu, s, An, Ainv, ok, omega, r, v, tol, max_newton,
@@ -181,14 +195,7 @@ def sweep_matrix_free(
     fails = 0
     for k in range(order.shape[0]):
         i = order[k]
-        u0 = b[i, 0] + gamma2 * r[i, 0]
-        u1 = b[i, 1] + gamma2 * r[i, 1]
-        u2 = b[i, 2] + gamma2 * r[i, 2]
-        for p in range(h_ptr[i], h_ptr[i + 1]):
-            x = v[h_cols[p]]
-            u0 += h_vals[p, 0] * x
-            u1 += h_vals[p, 1] * x
-            u2 += h_vals[p, 2] * x
+        u0, u1, u2 = _packed_row(i, h_ptr, h_cols, h_vals, v, gamma2, r, b)
         # c_i = u_i - W_ii r_i
         A = _sym9(An, i)
         si = s[i]
@@ -217,14 +224,7 @@ def sweep_matrix_free(
 def packed_apply(ptr, cols, vals, v, gamma2, r, b, out):
     """out_i = H_i v + 2 gamma r_i + b_i (u from v = D H^T r)."""
     for i in range(ptr.shape[0] - 1):
-        u0 = b[i, 0] + gamma2 * r[i, 0]
-        u1 = b[i, 1] + gamma2 * r[i, 1]
-        u2 = b[i, 2] + gamma2 * r[i, 2]
-        for p in range(ptr[i], ptr[i + 1]):
-            x = v[cols[p]]
-            u0 += vals[p, 0] * x
-            u1 += vals[p, 1] * x
-            u2 += vals[p, 2] * x
+        u0, u1, u2 = _packed_row(i, ptr, cols, vals, v, gamma2, r, b)
         out[i, 0] = u0
         out[i, 1] = u1
         out[i, 2] = u2
