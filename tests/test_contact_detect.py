@@ -455,3 +455,35 @@ def test_detect_contacts_without_head_uses_default_radius():
     c = detect_contacts(*crossing_pair(1.5 * DEFAULT_CONTACT_RADIUS))
     assert len(c) == 1 and c.radius == DEFAULT_CONTACT_RADIUS
     assert len(detect_contacts(*crossing_pair(1.5 * RC), strand_strand=False)) == 0
+
+
+@settings(max_examples=30, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(seed=st.integers(0, 10**6), n_strands=st.integers(1, 20), radius=st.floats(1e-5, 1e-3),
+       spread=st.sampled_from([1.0, 1.5, 4.0]))
+def test_one_radius_per_strand_is_the_largest_radius_filtered_by_the_pairs_threshold(seed, n_strands, radius,
+                                                                                      spread):
+    """The simulator's per-strand speculative margins: with radii r_s per strand, the close pairs are
+    exactly those of the segment-level reference at max(r) whose distance is below r_a + r_b (same
+    parameters, bit for bit), and the contacts those of max(r) below their own threshold."""
+    rng = np.random.default_rng(seed)
+    strands = random_groom(rng, n_strands, radius)
+    pts, off, arc = ragged(strands)
+    radii = radius * rng.uniform(1.0, spread, size=len(off) - 1)
+    r_max = float(radii.max())
+    seg_v0, seg_strand = detect.strand_segments(off)
+    pairs = close_segment_pairs(pts, off, arc, radii, min_self_arc=np.pi * r_max)
+    ref = contact_reference.close_segment_pairs_reference(pts, off, arc, r_max)
+    order = np.lexsort((ref.j, ref.i))
+    keep = ref.distance[order] < radii[seg_strand[ref.i[order]]] + radii[seg_strand[ref.j[order]]]
+    for name in ("i", "j", "s", "t", "distance"):
+        np.testing.assert_array_equal(getattr(pairs, name), getattr(ref, name)[order][keep])
+    if spread > 1.0 and n_strands > 1:
+        assert np.all(pairs.distance < 2.0 * r_max)
+    got = detect_strand_contacts(pts, off, arc, radii)
+    assert got.radius == r_max
+    threshold = radii[got.strand_a] + radii[got.strand_b]
+    assert np.all(got.distance < threshold)
+    with pytest.raises(ValueError, match="one per strand"):
+        close_segment_pairs(pts, off, arc, radii[:-1] if len(radii) > 1 else np.ones(3))
+    with pytest.raises(ValueError, match="positive"):
+        close_segment_pairs(pts, off, arc, -radii)

@@ -487,8 +487,8 @@ def test_inertia_kernel_matches_the_numpy_quadrature(seed, n, scale, moving):
     assert np.abs(A - A_ref).max() <= 1e-10 * max(np.abs(A_ref).max(), 1e-300)
     assert np.array_equal(dyn.mass_matrix(helix, inertia, order=5), M)
     assert np.array_equal(dyn.velocity_terms(helix, rates, inertia, order=5, root_motion=motion), A)
-    speed = np.linalg.norm(ref.node_motion(helix, rates).V, axis=-1).max()
-    assert dyn.max_node_speed(helix, rates) == pytest.approx(speed, rel=1e-12, abs=1e-300)
+    speeds = np.linalg.norm(ref.node_motion(helix, rates).V, axis=-1).max(axis=1)  # per strand, over its nodes
+    np.testing.assert_allclose(dyn.strand_node_speeds(helix, rates), speeds, rtol=1e-12, atol=1e-300)
 
 
 def test_subset_of_touching_strands_starts_in_equilibrium(tmp_path):
@@ -514,3 +514,26 @@ def test_subset_of_touching_strands_starts_in_equilibrium(tmp_path):
     assert report["subset"]["simulated_with_partners"] == 2
     assert report["inverted"]["max_tip_drift_m"] < 1e-9
     assert report["inverted"]["solver"]["failures"] == 0
+
+
+def test_speculative_margins_are_per_strand():
+    """A fast strand widens only its own pairs' thresholds: 2 r_c + m_a + m_b (strand/strand), r_c + m_a
+    (head), each m = min(cap, 1.5 h |v|max of the strand)."""
+    from groomtool.contact import Contacts
+    from groomtool.simulate_contacts import ContactTracker, contact_thresholds
+
+    params = SimulationParams(dt=0.01)
+    rc = 1e-4
+    tracker = ContactTracker(params, rc, None, None, np.ones((3, 2)), np.ones((3, 2), bool))
+    m_h, m_s = tracker.margins(np.array([0.0, 0.001, 10.0]))  # at rest, slow, fast (capped)
+    np.testing.assert_allclose(m_s, [0.0, 1.5e-5, 2 * rc])
+    np.testing.assert_allclose(m_h, [0.0, 1.5e-5, 100 * rc])
+    n = 4
+    z = np.zeros((n, 3))
+    contacts = Contacts(np.array([0, 0, 1, 2]), np.zeros(n), np.array([1, -1, 2, -1]), np.zeros(n), z, z, z,
+                        np.zeros((n, 3, 3)), np.zeros(n), rc)
+    np.testing.assert_allclose(contact_thresholds(contacts, rc, (m_h, m_s)),
+                               [2 * rc + 1.5e-5, rc, 2 * rc + 1.5e-5 + 2 * rc, rc + 100 * rc])
+    # one number for all strands (the previous form) still works
+    np.testing.assert_allclose(contact_thresholds(contacts, rc, (1e-5, 2e-5)), [2 * rc + 4e-5, rc + 1e-5,
+                                                                                2 * rc + 4e-5, rc + 1e-5])

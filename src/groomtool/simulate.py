@@ -292,7 +292,7 @@ class Simulator:
         if not self._contacts_on:
             return system
 
-        margins = self.tracker.margins(dyn.max_node_speed(helix, st.rates, kin))
+        margins = self.tracker.margins(dyn.strand_node_speeds(helix, st.rates, kin))
         contacts = self.tracker.contacts(helix, kin, st.time, margins)
         t0 = self._time("detect", t0)
         system.stats["contacts"] = len(contacts.strand_a)
@@ -336,13 +336,19 @@ class Simulator:
         # the problem on the dofs the contacts move: strand s's first k_s (a contact on element e moves the
         # dofs of elements 0..e only), with D_s = (Mhat_s^-1)[:k_s, :k_s] (StrandFactors.leading_inverse)
         offsets = 3 * helix.flat_offsets()
-        strand_of = np.searchsorted(offsets, H.indices, side="right") - 1
+        strand_of = np.repeat(np.arange(helix.n_strands), np.diff(offsets))[H.indices]  # a gather, not a search
+        local = H.indices - offsets[strand_of]
         k = np.zeros(helix.n_strands, dtype=np.int64)
-        np.maximum.at(k, strand_of, H.indices - offsets[strand_of] + 1)
+        # per strand the largest local dof + 1, from the last entry of each row's run on a strand (a row's
+        # indices are sorted, a strand's dofs contiguous)
+        end = np.diff(strand_of, append=-1) != 0
+        end[H.indptr[1:][H.indptr[1:] > H.indptr[:-1]] - 1] = True
+        last = np.flatnonzero(end)
+        np.maximum.at(k, strand_of[last], local[last] + 1)
         touched = np.flatnonzero(k > 0)
         new_offsets = np.zeros(helix.n_strands, dtype=np.int64)
         new_offsets[touched] = np.concatenate([[0], np.cumsum(k[touched])[:-1]])
-        H_moved = sp.csr_matrix((H.data, new_offsets[strand_of] + H.indices - offsets[strand_of], H.indptr),
+        H_moved = sp.csr_matrix((H.data, new_offsets[strand_of] + local, H.indptr),
                                 shape=(H.shape[0], int(k.sum())))
         blocks = [system.factors.leading_inverse(s, int(k[s])) for s in touched]
         g = float(np.linalg.norm(self.gravity))

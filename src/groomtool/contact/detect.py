@@ -272,12 +272,12 @@ def _boxes_overlap(a, r, b, q):
 
 
 @nb.njit(cache=True)
-def _segment_groups(points, seg_v0, seg_strand, radius, max_segments, max_length):
+def _segment_groups(points, seg_v0, seg_strand, seg_radius, max_segments, max_length):
     """Runs of consecutive segments of one strand, at most ``max_segments`` long and, past the first
     segment, at most ``max_length`` in total length.
 
     Returns first (n_groups + 1,): the first segment of each group, then n_seg; box (n_groups, 6):
-    the union of the group's segment boxes inflated by radius (lower xyz, upper xyz); capsule
+    the union of the group's segment boxes, each inflated by its radius seg_radius (lower xyz, upper xyz); capsule
     (n_groups, 7): the chord from the group's first to its last vertex and the largest distance of
     the group's vertices (hence of its polyline) from that chord.
     """
@@ -304,7 +304,7 @@ def _segment_groups(points, seg_v0, seg_strand, radius, max_segments, max_length
         box[g, :3] = np.inf
         box[g, 3:] = -np.inf
         for i in range(first[g], first[g + 1]):
-            _segment_box(points, seg_v0[i], radius, seg_box, 0)
+            _segment_box(points, seg_v0[i], seg_radius[i], seg_box, 0)
             for k in range(3):
                 box[g, k] = min(box[g, k], seg_box[0, k])
                 box[g, 3 + k] = max(box[g, 3 + k], seg_box[0, 3 + k])
@@ -552,19 +552,20 @@ def _capsules_apart(capsule, a, b, limit):
 
 @nb.njit(cache=True)
 def _close_pairs_kernel(keys, ids, first, box, capsule, origin, h, nx, ny, points, arc, seg_v0, seg_strand,
-                        radius, min_self_arc, tol):
+                        seg_radius, min_self_arc, tol):
     """Exact close segment pairs, from the group cell entries sorted by (cell key, box lower x).
 
     Segment pairs inside each group are tested directly.  Pairs of groups come from a sweep along
     x inside each cell (boxes and capsules gathered in entry order); a group pair belongs to the
-    single cell holding the lower corner of the two boxes' intersection.  Group pairs whose
-    capsules are at least 2 r_c + tol apart are skipped; two single segments go straight to
+    single cell holding the lower corner of the two boxes' intersection.  Segments i and j are close
+    when their axes are less than seg_radius[i] + seg_radius[j] apart (2 r_c for one radius; one
+    radius per strand, so a group has its strand's).  Group pairs whose
+    capsules are at least r_A + r_B + tol apart are skipped; two single segments go straight to
     :func:`_pair_test` (their boxes are the group boxes); otherwise each group's segments whose
     boxes overlap the other group's box are paired up and the pairs whose boxes overlap get it.
 
     Returns (n_group_pairs, n_candidates, ij (m, 2), std (m, 3): s, t, distance), sorted by (i, j).
     """
-    two_rc = 2.0 * radius
     n_groups = first.shape[0] - 1
     size = 1
     for g in range(n_groups):
@@ -580,12 +581,12 @@ def _close_pairs_kernel(keys, ids, first, box, capsule, origin, h, nx, ny, point
     for g in range(n_groups):
         m = first[g + 1] - first[g]
         for a in range(m):
-            _segment_box(points, seg_v0[first[g] + a], radius, box_a, a)
+            _segment_box(points, seg_v0[first[g] + a], seg_radius[first[g] + a], box_a, a)
         for a in range(m):
             for b in range(a + 1, m):
                 if _boxes_overlap(box_a, a, box_a, b):
                     stage, s, t, d = _pair_test(first[g] + a, first[g] + b, points, arc, seg_v0, seg_strand,
-                                                two_rc, min_self_arc)
+                                                seg_radius[first[g] + a] + seg_radius[first[g] + b], min_self_arc)
                     n_cand += stage > 0
                     if stage == 2:
                         out_ij, out_std = _push(out_ij, out_std, n_out, first[g] + a, first[g] + b, s, t, d)
@@ -626,12 +627,13 @@ def _close_pairs_kernel(keys, ids, first, box, capsule, origin, h, nx, ny, point
                 n_group_pairs += 1
                 A = ids[x]
                 B = ids[y]
-                if _capsules_apart(ec, x, y, two_rc + tol):
+                if _capsules_apart(ec, x, y, seg_radius[first[A]] + seg_radius[first[B]] + tol):
                     continue
                 if first[A + 1] - first[A] + first[B + 1] - first[B] == 2:  # two segments: boxes overlap
                     i = min(first[A], first[B])
                     j = max(first[A], first[B])
-                    stage, s, t, d = _pair_test(i, j, points, arc, seg_v0, seg_strand, two_rc, min_self_arc)
+                    stage, s, t, d = _pair_test(i, j, points, arc, seg_v0, seg_strand, seg_radius[i] + seg_radius[j],
+                                                min_self_arc)
                     n_cand += stage > 0
                     if stage == 2:
                         out_ij, out_std = _push(out_ij, out_std, n_out, i, j, s, t, d)
@@ -639,7 +641,7 @@ def _close_pairs_kernel(keys, ids, first, box, capsule, origin, h, nx, ny, point
                     continue
                 na = 0
                 for a in range(first[A], first[A + 1]):
-                    _segment_box(points, seg_v0[a], radius, box_a, na)
+                    _segment_box(points, seg_v0[a], seg_radius[a], box_a, na)
                     if _boxes_overlap(box_a, na, eb, y):
                         seg_a[na] = a
                         na += 1
@@ -647,7 +649,7 @@ def _close_pairs_kernel(keys, ids, first, box, capsule, origin, h, nx, ny, point
                     continue
                 nb_ = 0
                 for b in range(first[B], first[B + 1]):
-                    _segment_box(points, seg_v0[b], radius, box_b, nb_)
+                    _segment_box(points, seg_v0[b], seg_radius[b], box_b, nb_)
                     if _boxes_overlap(box_b, nb_, eb, x):
                         seg_b[nb_] = b
                         nb_ += 1
@@ -657,7 +659,8 @@ def _close_pairs_kernel(keys, ids, first, box, capsule, origin, h, nx, ny, point
                             continue
                         i = min(seg_a[p], seg_b[q])
                         j = max(seg_a[p], seg_b[q])
-                        stage, s, t, d = _pair_test(i, j, points, arc, seg_v0, seg_strand, two_rc, min_self_arc)
+                        stage, s, t, d = _pair_test(i, j, points, arc, seg_v0, seg_strand,
+                                                    seg_radius[i] + seg_radius[j], min_self_arc)
                         n_cand += stage > 0
                         if stage == 2:
                             out_ij, out_std = _push(out_ij, out_std, n_out, i, j, s, t, d)
@@ -681,21 +684,36 @@ class SegmentPairs:
     n_group_pairs: int = 0  #: pairs of segment groups whose inflated boxes overlap
 
 
-def close_segment_pairs(points, offsets, arc, radius: float, *, min_self_arc: float | None = None,
+def strand_radii(radius, n_strands: int) -> np.ndarray:
+    """A contact radius per strand (S,) from a scalar or an (S,) array, checked positive."""
+    r = np.asarray(radius, dtype=np.float64)
+    if r.ndim == 0:
+        r = np.full(n_strands, float(r))
+    if r.shape != (n_strands,):
+        raise ValueError(f"contact radius must be a number or one per strand ({n_strands},), got shape {r.shape}")
+    if not np.all(r > 0):
+        raise ValueError(f"contact radius must be positive, got {float(np.min(r)) if len(r) else radius}")
+    return np.ascontiguousarray(r)
+
+
+def close_segment_pairs(points, offsets, arc, radius, *, min_self_arc: float | None = None,
                         cell_size: float | None = None) -> SegmentPairs:
-    """All segment pairs whose axes are closer than ``2 * radius`` (same-strand rule applied), sorted
-    by (i, j).  ``cell_size``: the hash cell edge (default :func:`default_cell_size`)."""
+    """All segment pairs whose axes are closer than ``r_a + r_b`` (same-strand rule applied), sorted
+    by (i, j).  ``radius``: r_c (the threshold 2 r_c) or one radius per strand (S,) (the simulator's
+    speculative margins, strand by strand).  ``min_self_arc`` default pi max(radius).
+    ``cell_size``: the hash cell edge (default :func:`default_cell_size`)."""
     points, offsets, arc = check_strands(points, offsets, arc)
-    if not radius > 0:
-        raise ValueError(f"contact radius must be positive, got {radius}")
+    radii = strand_radii(radius, len(offsets) - 1)
+    r_max = float(np.max(radii, initial=0.0))
     if min_self_arc is None:
-        min_self_arc = np.pi * radius
+        min_self_arc = np.pi * r_max
     seg_v0, seg_strand = strand_segments(offsets)
     if len(seg_v0) < 2:
         e = np.zeros(0)
         return SegmentPairs(e.astype(np.int64), e.astype(np.int64), e, e, e, 0)
-    first, box, capsule = _segment_groups(points, seg_v0, seg_strand, float(radius), GROUP_SEGMENTS,
-                                          GROUP_DIAMETERS * 2.0 * radius)
+    seg_radius = np.ascontiguousarray(radii[seg_strand])
+    first, box, capsule = _segment_groups(points, seg_v0, seg_strand, seg_radius, GROUP_SEGMENTS,
+                                          GROUP_DIAMETERS * 2.0 * float(np.min(radii)))
     h = float(cell_size) if cell_size is not None else default_cell_size(box)
     origin = box[:, :3].min(axis=0)
     dims = np.floor((box[:, 3:].max(axis=0) - origin) / h).astype(np.int64) + 1
@@ -708,10 +726,10 @@ def close_segment_pairs(points, offsets, arc, radius: float, *, min_self_arc: fl
     else:
         order = np.argsort(keys, kind="stable")
     # distances are compared with a margin of rounding when groups are skipped by their capsules
-    tol = 1e-9 * (2.0 * radius + float(np.max(np.abs(points))))
+    tol = 1e-9 * (2.0 * r_max + float(np.max(np.abs(points))))
     n_group_pairs, n_cand, ij, std = _close_pairs_kernel(
         keys[order], ids[order], first, box, capsule, origin, h, dims[0], dims[1], points, arc, seg_v0,
-        seg_strand, float(radius), float(min_self_arc), tol)
+        seg_strand, seg_radius, float(min_self_arc), tol)
     return SegmentPairs(ij[:, 0].copy(), ij[:, 1].copy(), std[:, 0].copy(), std[:, 1].copy(), std[:, 2].copy(),
                         int(n_cand), int(n_group_pairs))
 
@@ -824,10 +842,12 @@ def pair_normals(point_a, point_b, dir_a, dir_b, distance) -> np.ndarray:
 
 
 # ---------------------------------------------------------------------------- public detection
-def detect_strand_contacts(points, offsets, arc, radius: float, *, min_self_arc: float | None = None,
+def detect_strand_contacts(points, offsets, arc, radius, *, min_self_arc: float | None = None,
                            merge_arc: float | None = None, cell_size: float | None = None,
                            stats: dict | None = None) -> Contacts:
-    """Strand/strand contacts between capsules of radius ``radius`` around the strand polylines.
+    """Strand/strand contacts between capsules of radius ``radius`` around the strand polylines
+    (a number, or one per strand (S,): capsules of strands a and b touch below r_a + r_b; min_self_arc,
+    merge_arc and the result's ``radius`` then use the largest).
 
     points (V, 3), offsets (S + 1,), arc (V,): the sampled strands and the arc-length parameter of
     each vertex (s on a segment is interpolated linearly).  ``min_self_arc`` (default pi r_c):
@@ -838,9 +858,11 @@ def detect_strand_contacts(points, offsets, arc, radius: float, *, min_self_arc:
     for self-contacts.
     """
     points, offsets, arc = check_strands(points, offsets, arc)
+    radius_arg = radius
+    radius = float(np.max(radius)) if np.ndim(radius) else radius
     merge_arc = 4.0 * radius if merge_arc is None else float(merge_arc)
     t0 = time.perf_counter()
-    pairs = close_segment_pairs(points, offsets, arc, radius, min_self_arc=min_self_arc, cell_size=cell_size)
+    pairs = close_segment_pairs(points, offsets, arc, radius_arg, min_self_arc=min_self_arc, cell_size=cell_size)
     seg_v0, seg_strand = strand_segments(offsets)
     t1 = time.perf_counter()
 

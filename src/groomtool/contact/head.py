@@ -37,7 +37,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
-from .detect import HEAD, Contacts, check_strands, merge_close
+from .detect import HEAD, Contacts, check_strands, merge_close, strand_radii
 from .frames import contact_frames
 
 _GOLDEN = 0.5 * (np.sqrt(5.0) - 1.0)
@@ -626,7 +626,7 @@ def _in_box_kernel(points, lo, hi):
 
 
 @nb.njit(cache=True)
-def _strand_bounds_kernel(points, offsets, in_box, bvh, tri_box, radius, max_seg, propagate, guard, tol_abs):
+def _strand_bounds_kernel(points, offsets, in_box, bvh, tri_box, radii, max_seg, propagate, guard, tol_abs):
     """Signed distance of the vertices in the box, or a lower bound of it where that already shows
     the vertex is no candidate (``_never_refined``); +inf outside the box.
 
@@ -635,7 +635,7 @@ def _strand_bounds_kernel(points, offsets, in_box, bvh, tri_box, radius, max_seg
     query (as the previous vertex's distance plus the step did); the lower bound replaces the query
     when the sign is known: the anchor is outside and the path since it stayed farther from every
     hole's guard box than the upper bound (``_sign_propagation``).  Returns (value, exact flag,
-    exact queries, bounded vertices).
+    exact queries, bounded vertices).  radii: the contact radius of each strand.
     """
     n = points.shape[0]
     val = np.full(n, np.inf)
@@ -645,6 +645,7 @@ def _strand_bounds_kernel(points, offsets, in_box, bvh, tri_box, radius, max_seg
     guarded = guard.shape[0] > 0
     for st in range(offsets.shape[0] - 1):
         v0, v1 = offsets[st], offsets[st + 1]
+        radius = radii[st]
         ua = -1.0  # the anchor's unsigned distance (< 0: no anchor yet)
         run = 0.0  # arc length since the anchor
         positive = False  # the anchor is outside and its sign holds up to here
@@ -691,13 +692,14 @@ def _make_exact(points, k, val, exact, bvh, tri_box):
 
 
 @nb.njit(cache=True)
-def _head_minima_bounded_kernel(points, arc, offsets, val, exact, bvh, tri_box, radius, min_root_arc, rel_tol,
+def _head_minima_bounded_kernel(points, arc, offsets, val, exact, bvh, tri_box, radii, min_root_arc, rel_tol,
                                 max_seg):
     """The reference's ``_head_minima_kernel`` (tests/reference/contact.py) on values that are exact
     or lower bounds (``_strand_bounds_kernel``): a bound is replaced by the exact distance (in place)
     wherever a decision needs it, so the candidates, the values used and the results are those of
     ``_head_minima_kernel`` on the exact distances.  ``max_seg``: the longest segment (a quick first
-    test).  Returns its four outputs and the number of late exact queries."""
+    test); radii: the contact radius of each strand.  Returns its four outputs and the number of late
+    exact queries."""
     out_v = np.empty(1024, np.int64)
     out_t = np.empty(1024)
     out_d = np.empty(1024)
@@ -709,6 +711,7 @@ def _head_minima_bounded_kernel(points, arc, offsets, val, exact, bvh, tri_box, 
         v_first, v_last = offsets[st], offsets[st + 1] - 1
         if v_last <= v_first:  # a strand without segments has no contact
             continue
+        radius = radii[st]
         for k in range(v_first, v_last + 1):
             if arc[k] - arc[v_first] < min_root_arc:
                 continue
@@ -784,10 +787,12 @@ def _max_segment(points, offsets):
     return best
 
 
-def detect_head_contacts(points, offsets, arc, head, radius: float, *, min_root_arc: float | None = None,
+def detect_head_contacts(points, offsets, arc, head, radius, *, min_root_arc: float | None = None,
                          merge_arc: float | None = None, stats: dict | None = None) -> Contacts:
     """Strand/head contacts: local minima along each strand of the signed axis-to-surface distance
     that are below ``radius`` (negative: the axis is inside the head; such contacts are reported).
+    ``radius``: a number or one per strand (S,) (min_root_arc, merge_arc and the result's ``radius``
+    then use the largest).
 
     ``head``: a trimesh.Trimesh, (vertices, faces) or a prepared ``HeadSurface``.  See the module
     docstring for the rules; contacts are ordered by (strand_a, s_a).  The result is that of the
@@ -795,8 +800,8 @@ def detect_head_contacts(points, offsets, arc, head, radius: float, *, min_root_
     this one queries only the vertices whose distance bounds cannot rule them out.
     """
     points, offsets, arc = check_strands(points, offsets, arc)
-    if not radius > 0:
-        raise ValueError(f"contact radius must be positive, got {radius}")
+    radii = strand_radii(radius, len(offsets) - 1)
+    radius = float(np.max(radius))
     t0 = time.perf_counter()
     head = as_head_surface(head)
     min_root_arc = np.pi * radius if min_root_arc is None else float(min_root_arc)
@@ -810,11 +815,11 @@ def detect_head_contacts(points, offsets, arc, head, radius: float, *, min_root_
     tol_abs = 1e-12 * (1.0 + float(np.max(np.abs(head.bounds))))
     t1 = time.perf_counter()
 
-    val, exact, n_exact, n_bounded = _strand_bounds_kernel(points, offsets, in_box, head._bvh, tri_box, float(radius),
+    val, exact, n_exact, n_bounded = _strand_bounds_kernel(points, offsets, in_box, head._bvh, tri_box, radii,
                                                            max_seg, bool(propagate), guard, tol_abs)
     t2 = time.perf_counter()
     v, t, d, n_refined, n_late = _head_minima_bounded_kernel(points, arc, offsets, val, exact, head._bvh, tri_box,
-                                                             float(radius), min_root_arc, 1e-3, max_seg)
+                                                             radii, min_root_arc, 1e-3, max_seg)
     strand = np.searchsorted(offsets, v, side="right") - 1
     s_a = arc[v] + t * (arc[v + 1] - arc[v])
     kept = merge_close(strand, np.full(len(v), HEAD), s_a, np.zeros(len(v)), d, merge_arc)

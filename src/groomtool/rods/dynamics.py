@@ -62,19 +62,18 @@ class Inertia:
 
 
 # --------------------------------------------------------------------------- node speeds
-def max_node_speed(helix: SuperHelix, rates: np.ndarray, kin: Kinematics | None = None) -> float:
-    """max over nodes of |V_j| (root at rest), by the recursion V_{j+1} = V_j + Omega_j x y_j + R_j D_j u_j,
-    Omega_{j+1} = Omega_j + Theta_j u_j (module docstring)."""
+def strand_node_speeds(helix: SuperHelix, rates: np.ndarray, kin: Kinematics | None = None) -> np.ndarray:
+    """(S,) per strand the max over its nodes of |V_j| (root at rest), by the recursion
+    V_{j+1} = V_j + Omega_j x y_j + R_j D_j u_j, Omega_{j+1} = Omega_j + Theta_j u_j (module docstring)."""
     kin = kin if kin is not None else kinematics(helix)
     S, N = helix.lengths.shape
     u = np.ascontiguousarray(np.asarray(rates, dtype=np.float64).reshape(S, N, 3))
-    return float(_max_node_speed_kernel(kin.R, kin.p, kin.D, kin.Theta, u,
-                                        np.asarray(helix.n_elements, dtype=np.int64)))
+    return _node_speeds_kernel(kin.R, kin.p, kin.D, kin.Theta, u, np.asarray(helix.n_elements, dtype=np.int64))
 
 
 @njit(cache=True)
-def _max_node_speed_kernel(R, p, D, Theta, u, n_elements):
-    best = 0.0
+def _node_speeds_kernel(R, p, D, Theta, u, n_elements):
+    out = np.zeros(R.shape[0])
     V = np.empty(3)
     om = np.empty(3)
     y = np.empty(3)
@@ -82,6 +81,7 @@ def _max_node_speed_kernel(R, p, D, Theta, u, n_elements):
     for s in range(R.shape[0]):
         V[:] = 0.0
         om[:] = 0.0
+        best = 0.0
         for j in range(n_elements[s]):
             Rj = R[s, j]
             for a in range(3):
@@ -102,7 +102,8 @@ def _max_node_speed_kernel(R, p, D, Theta, u, n_elements):
             speed = np.sqrt(V[0] * V[0] + V[1] * V[1] + V[2] * V[2])
             if speed > best:
                 best = speed
-    return best
+        out[s] = best
+    return out
 
 
 def _root_motion_arrays(S: int, root_motion: dict | None, a: int, b: int):
