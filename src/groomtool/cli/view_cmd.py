@@ -50,10 +50,7 @@ def cmd_view(args) -> int:
         raise GroomError(f"--size {w} {h}: width and height must be 16 to 16384 pixels")
     if args.samples < 1:
         raise GroomError(f"--samples must be >= 1, got {args.samples}")
-    try:
-        from ..viz import viewer
-    except ImportError as exc:
-        raise GroomError(f"groom view needs pyvista and vtk (pip install pyvista vtk): {exc}") from exc
+    from ..viz import viewer  # pyvista and vtk (hard dependencies, about 1 s): kept off the CLI's start
     head = None
     if args.head:
         from ..io import load_head
