@@ -265,3 +265,19 @@ def test_invert_format_abc(tmp_path):
     out = tmp_path / "out"
     assert main(["invert", str(groom_path), "--format", "npz", "--format", "abc", "-q", "-o", str(out)]) == EXIT_OK
     assert load_groom(out / "groom.abc", units="cm").n_strands == 4
+
+
+@needs_abc
+def test_rerun_without_abc_drops_the_stale_groom_abc(tmp_path):
+    """groom.abc is an output of the run (io/outset.py OWNED): a later run into the same directory without
+    --format abc drops it instead of carrying the earlier run's Alembic beside the new rest.npz."""
+    from groomtool.cli.main import EXIT_OK, main
+    from groomtool.examples import write_example
+
+    groom_path, _ = write_example(tmp_path, n_strands=3, seed=2)
+    out = tmp_path / "out"
+    assert main(["invert", str(groom_path), "--format", "npz", "--format", "abc", "-q", "-o", str(out)]) == EXIT_OK
+    assert (out / "groom.abc").is_file()
+    (out / "notes.txt").write_text("mine")
+    assert main(["invert", str(groom_path), "-q", "-o", str(out)]) == EXIT_OK
+    assert not (out / "groom.abc").exists() and (out / "notes.txt").read_text() == "mine"

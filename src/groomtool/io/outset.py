@@ -28,8 +28,8 @@ from ..groom import GroomError
 PREFIX = ".groom-tmp-"
 # Files an inversion run writes or derives from its rest.npz: replaced or dropped as a set.
 OWNED = frozenset({
-    "rest.npz", "rest_shape.obj", "fitted.obj", "report.json", "check.json",
-    "groom.usdc", "groom.usda", "groom.usd", "groom.vtp", "groom_head.vtp", "rest_shape.hair", "fitted.hair",
+    "rest.npz", "rest_shape.obj", "fitted.obj", "report.json", "check.json", "groom.usdc", "groom.usda", "groom.usd",
+    "groom.abc", "groom.vtp", "groom_head.vtp", "rest_shape.hair", "fitted.hair",
 })
 _RENAME_EXCHANGE = 2
 _AT_FDCWD = -100
