@@ -26,33 +26,88 @@ import scipy.sparse as sp
 from numba import njit
 
 from .material import Material
+from .rods import clothoid as cl
 from .rods import superhelix as sh
 from .solver_choice import AUTO_CLARABEL_MAX_CONTACTS, GS_GIVE_UP, choose_solver
 from .timing import progress
 
 
-def strand_stiffness(helix: sh.SuperHelix, material: Material, stiffness_factor=None) -> np.ndarray:
-    """K (S, N, 3): K_j = f_s l_j (GJ, EI, EI), f_s the strand's stiffness factor (None: all 1), 0 on padding."""
+MODELS = ("superhelix", "clothoid")
+
+
+def model_name(rod) -> str:
+    """"clothoid" for a :class:`~groomtool.rods.clothoid.SuperClothoid`, else "superhelix"."""
+    return "clothoid" if isinstance(rod, cl.SuperClothoid) else "superhelix"
+
+
+def rod_module(rod):
+    """The rod model's module (:mod:`groomtool.rods.clothoid` or :mod:`groomtool.rods.superhelix`)."""
+    return cl if isinstance(rod, cl.SuperClothoid) else sh
+
+
+def _factor(stiffness_factor, S):
+    return np.ones(S) if stiffness_factor is None else np.asarray(stiffness_factor, dtype=np.float64).reshape(-1)
+
+
+def strand_stiffness(helix, material: Material, stiffness_factor=None):
+    """Super-Helix: K (S, N, 3): K_j = f_s l_j (GJ, EI, EI), f_s the strand's stiffness factor (None: all 1), 0 on
+    padding.  Super Space Clothoid: K in banded form (diagonal blocks (S, N + 1, 3), off-diagonal blocks (S, N, 3),
+    :func:`groomtool.rods.clothoid.stiffness`) times f_s."""
+    if isinstance(helix, cl.SuperClothoid):
+        diag, off = cl.stiffness(helix, material.stiffness_diag)
+        f = _factor(stiffness_factor, helix.n_strands)
+        return diag * f[:, None, None], off * f[:, None, None]
     K = sh.stiffness(helix, material.stiffness_diag)
     if stiffness_factor is not None:
         K = K * np.asarray(stiffness_factor, dtype=np.float64).reshape(-1, 1, 1)
     return K
 
 
-def isolated_rest_curvatures(helix: sh.SuperHelix, material: Material, gravity, kin=None,
-                             stiffness_factor=None) -> np.ndarray:
-    """q0 = q - K^-1 F(q), (S, N, 3); padding stays 0."""
-    F = gravity_force(helix, material, gravity, kin)
+def stiffness_apply(helix, material: Material, d: np.ndarray, stiffness_factor=None) -> np.ndarray:
+    """K d for d shaped like the curvatures (diagonal K of the helix, block tridiagonal of the clothoid)."""
+    if isinstance(helix, cl.SuperClothoid):
+        f = _factor(stiffness_factor, helix.n_strands)
+        return cl.stiffness_apply(helix, material.stiffness_diag, d) * f[:, None, None]
+    return strand_stiffness(helix, material, stiffness_factor) * d
+
+
+def stiffness_solve(helix, material: Material, rhs: np.ndarray, stiffness_factor=None) -> np.ndarray:
+    """K^-1 rhs for rhs shaped like the curvatures; 0 on padding."""
+    if isinstance(helix, cl.SuperClothoid):
+        f = _factor(stiffness_factor, helix.n_strands)
+        return cl.stiffness_solve(helix, material.stiffness_diag, rhs) / f[:, None, None]
     K = strand_stiffness(helix, material, stiffness_factor)
-    q0 = helix.curvatures - np.divide(F, K, out=np.zeros_like(F), where=K > 0)
-    return q0
+    return np.divide(rhs, K, out=np.zeros_like(rhs), where=K > 0)
 
 
-def gravity_force(helix: sh.SuperHelix, material: Material, gravity, kin=None) -> np.ndarray:
-    """F(q) (S, N, 3): with ``kin`` given, from it; else in chunks of strands of similar length."""
+def isolated_rest_curvatures(helix, material: Material, gravity, kin=None,
+                             stiffness_factor=None) -> np.ndarray:
+    """q0 = q - K^-1 F(q), (S, N, 3) (clothoid: (S, N + 1, 3), a tridiagonal solve per strand); padding stays 0."""
+    F = gravity_force(helix, material, gravity, kin)
+    return helix.curvatures - stiffness_solve(helix, material, F, stiffness_factor)
+
+
+def map_rod_chunks(rod, fn, chunk: int = 1024) -> np.ndarray:
+    """:func:`groomtool.rods.superhelix.map_strand_chunks` for either model: ``fn(sub) -> (s, n, ...)`` per group
+    of strands of similar element counts, gathered shaped like the curvatures."""
+    if not isinstance(rod, cl.SuperClothoid):
+        return sh.map_strand_chunks(rod, fn, chunk)
+    order = np.argsort(rod.n_elements, kind="stable")
+    out = np.zeros(rod.curvatures.shape)
+    for start in range(0, rod.n_strands, chunk):
+        ids = order[start:start + chunk]
+        part = fn(rod.subset(ids))
+        out[ids, :part.shape[1]] = part
+    return out
+
+
+def gravity_force(helix, material: Material, gravity, kin=None) -> np.ndarray:
+    """F(q) (S, N, 3) (clothoid: (S, N + 1, 3)): with ``kin`` given, from it; else in chunks of strands of similar
+    length."""
+    mod = rod_module(helix)
     if kin is not None:
-        return sh.gravity_force(helix, material.linear_density, gravity, kin)
-    return sh.map_strand_chunks(helix, lambda sub: sh.gravity_force(sub, material.linear_density, gravity))
+        return mod.gravity_force(helix, material.linear_density, gravity, kin)
+    return map_rod_chunks(helix, lambda sub: mod.gravity_force(sub, material.linear_density, gravity))
 
 
 def rest_curvature_guess(helix: sh.SuperHelix, guess: str) -> np.ndarray:
@@ -61,6 +116,9 @@ def rest_curvature_guess(helix: sh.SuperHelix, guess: str) -> np.ndarray:
     so its shape is its natural shape; the lecture's q0 = q(L), for uniformly curled hair)."""
     if guess == "current":
         return helix.curvatures.copy()
+    if isinstance(helix, cl.SuperClothoid):  # the tip node
+        tip = helix.curvatures[np.arange(helix.n_strands), helix.n_elements]
+        return np.where(helix.node_mask[..., None], tip[:, None, :], 0.0)
     last = np.maximum(helix.n_elements - 1, 0)
     tip = helix.curvatures[np.arange(helix.n_strands), last]
     return np.where(helix.element_mask[..., None], tip[:, None, :], 0.0)
@@ -68,7 +126,7 @@ def rest_curvature_guess(helix: sh.SuperHelix, guess: str) -> np.ndarray:
 
 def equilibrium_residuals(helix: sh.SuperHelix, rest_curvatures, material: Material, gravity,
                           contacts=None, forces=None, chunk: int = 1024, stiffness_factor=None) -> np.ndarray:
-    """||K (q - q0) - F - H^T r|| / ||F|| per strand (K with the per-strand ``stiffness_factor``), recomputed
+    """||K (q - q0) - F - H^T r|| / ||F|| per strand (K with the per-strand ``stiffness_factor``; either model), recomputed
     from scratch (fresh kinematics, H^T r point by point), independent of how q0 was obtained.  In chunks of
     strands of similar length, each chunk's kinematics serving both F and H^T r."""
     from .contact.jacobian import point_forces_generalized  # contact (0.3 s): kept off the CLI's start
@@ -96,17 +154,17 @@ def equilibrium_residuals(helix: sh.SuperHelix, rest_curvatures, material: Mater
     if HtR is not None:
         by_chunk = np.argsort(which_chunk[strand], kind="stable")
         bounds = np.searchsorted(which_chunk[strand][by_chunk], np.arange((S + chunk - 1) // chunk + 1))
+    mod = rod_module(helix)
     for c, start in enumerate(range(0, S, chunk)):
         ids = order[start:start + chunk]
         sub = helix.subset(ids)
-        kin = sh.kinematics(sub)
-        n = sub.max_elements
-        F[ids, :n] = sh.gravity_force(sub, material.linear_density, gravity, kin)
+        kin = mod.kinematics(sub)
+        n = sub.curvatures.shape[1]
+        F[ids, :n] = mod.gravity_force(sub, material.linear_density, gravity, kin)
         if HtR is not None:
             mine = by_chunk[bounds[c]:bounds[c + 1]]
             HtR[ids, :n] = point_forces_generalized(sub, kin, local[strand[mine]], arc[mine], point_force[mine])
-    K = strand_stiffness(helix, material, stiffness_factor)
-    res = K * (helix.curvatures - rest_curvatures) - F
+    res = stiffness_apply(helix, material, helix.curvatures - rest_curvatures, stiffness_factor) - F
     if HtR is not None:
         res -= HtR
     num = np.linalg.norm(res.reshape(S, -1), axis=1)
@@ -117,10 +175,12 @@ def equilibrium_residuals(helix: sh.SuperHelix, rest_curvatures, material: Mater
 @dataclass
 class InverseProblem:
     """The inverse SOCQP in solver units: W~ = H (K^-2 / w_scale) H^T + 2 gamma I, b~ = b / (w_scale f_scale),
-    r = f_scale r~.  ``H`` and ``inv_stiffness`` (flat K^-1) are kept to map r back to q0."""
+    r = f_scale r~.  ``H`` and ``inv_stiffness`` (flat K^-1) are kept to map r back to q0.  For the Super Space
+    Clothoid K is block tridiagonal, not diagonal: ``inv_stiffness`` is None, ``inv_apply`` applies K^-1 to flat
+    vectors (tridiagonal solves) and ``inv_square_blocks`` holds the dense K^-2 of every strand (its real dofs)."""
 
     H: object
-    inv_stiffness: np.ndarray
+    inv_stiffness: np.ndarray | None
     d: np.ndarray
     gamma: float
     w_scale: float
@@ -128,19 +188,27 @@ class InverseProblem:
     b: np.ndarray
     mu: np.ndarray
     q0_free: np.ndarray | None = None  # flat q - K^-1 F: q0 = q0_free - K^-1 H^T r
+    inv_apply: object = None  # clothoid: flat x -> flat K^-1 x
+    inv_square_blocks: list | None = None  # clothoid: per strand dense K^-2
+
+    def apply_inverse_stiffness(self, x: np.ndarray) -> np.ndarray:
+        """K^-1 x for a flat x."""
+        return self.inv_stiffness * x if self.inv_apply is None else self.inv_apply(x)
 
     def contact_problem(self, helix: sh.SuperHelix):
         """The solvers' ContactProblem: W~ = H D H^T + 2 gamma I with D = K^-2 / w_scale per strand of
-        ``helix``.  D is diagonal and passed as one flat array (per-strand dense diagonal matrices,
-        as before, cost ~1 GB on harolongo only to be recognised as diagonal)."""
+        ``helix``.  Super-Helix: D is diagonal and passed as one flat array (per-strand dense diagonal matrices,
+        as before, cost ~1 GB on harolongo only to be recognised as diagonal); clothoid: dense blocks."""
         from .solvers import ContactProblem  # kept off the CLI's start
 
-        return ContactProblem(H=self.H, D_blocks=self.inv_stiffness ** 2 / self.w_scale,
+        D = (self.inv_stiffness ** 2 / self.w_scale if self.inv_square_blocks is None
+             else [blk / self.w_scale for blk in self.inv_square_blocks])
+        return ContactProblem(H=self.H, D_blocks=D,
                               dof_offsets=3 * helix.flat_offsets(), gamma=self.gamma, b=self.b, mu=self.mu)
 
     def objective(self, r: np.ndarray) -> float:
         """1/2 || K^-1 H^T r - d ||^2 + gamma_abs ||r||^2 in physical units (r in newtons)."""
-        y = self.inv_stiffness * (self.H.T @ r) - self.d
+        y = self.apply_inverse_stiffness(self.H.T @ r) - self.d
         return 0.5 * float(y @ y) + self.gamma * self.w_scale * float(r @ r)
 
 
@@ -161,6 +229,8 @@ def build_inverse_problem(helix, F, H, material: Material, gravity, guess: str, 
                           mu: np.ndarray, stiffness_factor=None) -> InverseProblem:
     """The scaled SOCQP for gravity forces F (S, N, 3) and contact Jacobian H (K with the per-strand
     ``stiffness_factor``, None: the material's)."""
+    if isinstance(helix, cl.SuperClothoid):
+        return _build_clothoid_problem(helix, F, H, material, gravity, guess, gamma, mu, stiffness_factor)
     K = strand_stiffness(helix, material, stiffness_factor)
     q0_guess = rest_curvature_guess(helix, guess)
     inv_k = helix.to_flat(np.divide(1.0, K, out=np.zeros_like(K), where=K > 0)).ravel()
@@ -178,11 +248,61 @@ def build_inverse_problem(helix, F, H, material: Material, gravity, guess: str, 
                           q0_free=helix.to_flat(q0_guess).ravel() + d)
 
 
+def clothoid_inverse_square_blocks(clothoid: cl.SuperClothoid, material: Material, stiffness_factor=None,
+                                   chunk: int = 256) -> list:
+    """Per strand the dense K^-2 over its real dofs (3 (N_s + 1) square, node-major like the flat dofs)."""
+    f = _factor(stiffness_factor, clothoid.n_strands)
+    out = [None] * clothoid.n_strands
+    order = np.argsort(clothoid.n_elements, kind="stable")
+    for start in range(0, clothoid.n_strands, chunk):
+        ids = order[start:start + chunk]
+        sub = clothoid.subset(ids)
+        K = cl.stiffness_matrix(sub, material.stiffness_diag) * f[ids, None, None]
+        real = np.repeat(sub.node_mask, 3, axis=1)
+        K = np.where(real[:, :, None] & real[:, None, :], K, 0.0) + np.apply_along_axis(np.diag, 1, ~real)
+        inv = np.linalg.inv(K)
+        sq = inv @ inv
+        for i, s in enumerate(ids):
+            n = 3 * (int(sub.n_elements[i]) + 1)
+            out[s] = np.ascontiguousarray(sq[i, :n, :n])
+    return out
+
+
+def _build_clothoid_problem(rod: cl.SuperClothoid, F, H, material: Material, gravity, guess: str, gamma: float,
+                            mu: np.ndarray, stiffness_factor=None) -> InverseProblem:
+    """:func:`build_inverse_problem` for the Super Space Clothoid: K^-1 by tridiagonal solves, K^-2 dense per strand
+    (the solvers take dense D blocks), diag(H K^-2 H^T) from the solvers' own diagonal blocks of W."""
+    from .solvers import ContactProblem  # kept off the CLI's start
+
+    def inv_apply(x):
+        return rod.to_flat(stiffness_solve(rod, material, rod.from_flat(np.asarray(x).reshape(-1, 3)),
+                                           stiffness_factor)).ravel()
+
+    q0_guess = rest_curvature_guess(rod, guess)
+    q = rod.to_flat(rod.curvatures).ravel()
+    d = q - inv_apply(rod.to_flat(F).ravel()) - rod.to_flat(q0_guess).ravel()
+    H = sp.csr_matrix(H)
+    blocks = clothoid_inverse_square_blocks(rod, material, stiffness_factor)
+    m = H.shape[0] // 3
+    diag = np.zeros(0)
+    if m:
+        probe = ContactProblem(H=H, D_blocks=blocks, dof_offsets=3 * rod.flat_offsets(), gamma=0.0,
+                               b=np.zeros(H.shape[0]), mu=np.zeros(m))
+        diag = np.einsum("kii->ki", probe.diagonal_blocks()).ravel()
+        del probe
+    w_scale = float(diag.mean()) if len(diag) and diag.mean() > 0 else 1.0
+    b = -(H @ inv_apply(d))
+    f_scale = material.linear_density * np.linalg.norm(gravity) * float(np.mean(rod.strand_lengths))
+    return InverseProblem(H=H, inv_stiffness=None, d=d, gamma=gamma, w_scale=w_scale, f_scale=f_scale,
+                          b=b / (w_scale * f_scale), mu=np.asarray(mu, dtype=np.float64),
+                          q0_free=rod.to_flat(q0_guess).ravel() + d, inv_apply=inv_apply,
+                          inv_square_blocks=blocks)
+
+
 def rest_curvatures_with_contacts(helix, material, F, H, forces_flat, stiffness_factor=None) -> np.ndarray:
-    """q0 = q - K^-1 (F + H^T r), (S, N, 3), F the gravity forces (S, N, 3)."""
-    K = strand_stiffness(helix, material, stiffness_factor)
+    """q0 = q - K^-1 (F + H^T r), shaped like the curvatures, F the gravity forces (the same shape)."""
     HtR = helix.from_flat((H.T @ forces_flat).reshape(-1, 3))
-    return helix.curvatures - np.divide(F + HtR, K, out=np.zeros_like(F), where=K > 0)
+    return helix.curvatures - stiffness_solve(helix, material, F + HtR, stiffness_factor)
 
 
 def cone_violation(forces: np.ndarray, mu: np.ndarray) -> float:
@@ -203,7 +323,7 @@ def rest_curvature_error_bound(problem: InverseProblem, cp, r, u=None, line_sear
 
     e = error_bound(cp, r, u, line_search=line_search)
     absolute = problem.f_scale * math.sqrt(problem.w_scale) * e["bound"]
-    q0 = problem.q0_free - problem.inv_stiffness * (problem.f_scale * e["HTr"])
+    q0 = problem.q0_free - problem.apply_inverse_stiffness(problem.f_scale * e["HTr"])
     q0_norm = float(np.linalg.norm(q0))
     rel = absolute / (q0_norm - absolute) if q0_norm > absolute else math.inf
     return {"q0_error_bound": float(rel), "q0_error_bound_abs": float(absolute), "q0_norm": q0_norm}

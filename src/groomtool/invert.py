@@ -17,8 +17,9 @@ import numpy as np
 from .fit import fit_groom
 from .fit.fitter import DEFAULT_TOLERANCE_M
 from .groom import Groom, GroomError
-from .inverse_problem import (build_inverse_problem, cone_violation, equilibrium_residuals, isolated_rest_curvatures,
-                              rest_curvatures_with_contacts, solve_inverse_problem, strand_stiffness)
+from .inverse_problem import (MODELS, build_inverse_problem, cone_violation, equilibrium_residuals,
+                              isolated_rest_curvatures, model_name, rest_curvatures_with_contacts, rod_module,
+                              solve_inverse_problem, strand_stiffness)
 from .material import Material
 from .rods import superhelix as sh
 from .rods.cosserat import cosserat_rest_data
@@ -76,8 +77,11 @@ class InversionParams:
     max_stiffness_factor: float = DEFAULT_CAP
     stiffness_factor: np.ndarray | None = None  # (S,) initial per-strand factors on E and G (None: all 1)
     friction_margin: float = 0.1  # the forces solved lie in the cones of (1 - margin) mu: they stick, with a margin
+    model: str = "superhelix"  # superhelix | clothoid (Super Space Clothoids, docs/clothoid.md)
 
     def __post_init__(self):
+        if self.model not in MODELS:
+            raise ValueError(f"model must be one of {MODELS}, got {self.model!r}")
         if self.contacts not in CONTACT_MODES:
             raise ValueError(f"contacts must be one of {CONTACT_MODES}, got {self.contacts!r}")
         if self.guess not in GUESSES:
@@ -115,7 +119,8 @@ class InversionParams:
 @dataclass
 class InversionResult:
     """What ``groom invert`` computes: the fitted Super-Helices, their rest curvatures, the contacts
-    and forces, and the report (also written as report.json)."""
+    and forces, and the report (also written as report.json).  With ``model="clothoid"`` ``helix`` is a
+    :class:`~groomtool.rods.clothoid.SuperClothoid` and the curvatures are nodal, (S, N + 1, 3)."""
 
     groom: Groom
     head: object
@@ -144,9 +149,14 @@ class InversionResult:
     def _factor(self) -> np.ndarray:
         return np.ones(self.helix.n_strands) if self.stiffness_factor is None else np.asarray(self.stiffness_factor)
 
-    def stiffness(self) -> np.ndarray:
-        """K (S, N, 3) with the per-strand moduli."""
+    def stiffness(self):
+        """K (S, N, 3) with the per-strand moduli (clothoid: the banded (diagonal, off-diagonal) blocks)."""
         return strand_stiffness(self.helix, self.material, self._factor())
+
+    @property
+    def model(self) -> str:
+        """"superhelix" or "clothoid"."""
+        return model_name(self.helix)
 
     @property
     def material(self) -> Material:
@@ -158,11 +168,11 @@ class InversionResult:
 
     def rest_shape(self, per_element: int = 4):
         """(points, offsets) of the rest shape sampled ``per_element`` times per element."""
-        pts, offsets, _, _ = sh.sample(self.rest_helix(), per_element)
+        pts, offsets, _, _ = rod_module(self.helix).sample(self.rest_helix(), per_element)
         return pts, offsets
 
     def fitted_shape(self, per_element: int = 4):
-        pts, offsets, _, _ = sh.sample(self.helix, per_element)
+        pts, offsets, _, _ = rod_module(self.helix).sample(self.helix, per_element)
         return pts, offsets
 
     def save(self, outdir, formats=("npz", "obj", "json")):
@@ -201,10 +211,18 @@ def invert_groom(groom: Groom, head=None, params: InversionParams | None = None,
         gaps = root_gaps(groom.points[groom.offsets[:-1]], head)
         report["roots"] = {"mode": "gap_reported", **_gap_summary(gaps)}
 
+    report["model"] = params.model
     with timer.stage("fit"):
-        fit = fit_groom(groom, tolerance=params.tolerance, relative_tolerance=params.relative_tolerance,
-                        progress=not quiet)
+        if params.model == "clothoid":
+            from .fit.clothoid_fit import fit_clothoid_groom
+
+            fit = fit_clothoid_groom(groom, tolerance=params.tolerance, relative_tolerance=params.relative_tolerance,
+                                     progress=not quiet)
+        else:
+            fit = fit_groom(groom, tolerance=params.tolerance, relative_tolerance=params.relative_tolerance,
+                            progress=not quiet)
     helix = fit.helix
+    mod = rod_module(helix)
     report["strands"] = int(helix.n_strands)
     report["elements"] = int(helix.n_elements.sum())
     report["fit"] = {"max_error_m": float(np.max(fit.max_error)) if len(fit.max_error) else 0.0,
@@ -212,6 +230,9 @@ def invert_groom(groom: Groom, head=None, params: InversionParams | None = None,
                      "tolerance_m": params.tolerance,
                      "relative_tolerance": params.relative_tolerance,
                      "strands_over_tolerance": int(np.count_nonzero(~np.asarray(fit.converged)))}
+    if params.model == "clothoid":
+        report["fit"]["helix_elements"] = fit.settings["helix_elements"]  # the Super-Helix fit it started from
+        report["fit"]["nodes"] = int((helix.n_elements + 1).sum())
 
     contacts = H = F = None
     forces = np.zeros((0, 3))
@@ -221,9 +242,9 @@ def invert_groom(groom: Groom, head=None, params: InversionParams | None = None,
         from .contact.jacobian import contact_jacobian
 
         with timer.stage("kinematics"):
-            kin = sh.kinematics(helix)
+            kin = mod.kinematics(helix)
         with timer.stage("contacts"):
-            pts, offsets, _, arc = sh.sample(helix, params.samples_per_element, kin)
+            pts, offsets, _, arc = mod.sample(helix, params.samples_per_element, kin)
             passes = int(params.contacts == "all") + int(head is not None)
             with progress(passes, "contacts", quiet, unit="pass") as bar:
                 radius = params.wisp_radius if params.wisp_radius is not None else params.contact_radius
@@ -240,7 +261,7 @@ def invert_groom(groom: Groom, head=None, params: InversionParams | None = None,
         # the cone boundary is an equilibrium that round-off tips into sliding
         mu_solve = (1.0 - params.friction_margin) * mu
         with timer.stage("solve"):
-            F = sh.gravity_force(helix, material.linear_density, gravity, kin)
+            F = mod.gravity_force(helix, material.linear_density, gravity, kin)
             redundant = redundant_strand_fraction(helix, contacts)
 
     # stable inversion (stabilize.py): solve, find the strands unstable with the contacts that hold them,
@@ -334,7 +355,7 @@ def invert_groom(groom: Groom, head=None, params: InversionParams | None = None,
         "guess": params.guess,
         "gamma": params.gamma, "solver": params.solver, "solver_tolerance": params.solver_tolerance,
         "q0_tolerance": params.q0_tolerance, "strict": params.strict,
-        "snap_roots": params.snap_roots,
+        "snap_roots": params.snap_roots, "model": params.model,
     }
     return InversionResult(groom=groom, head=head, params=params, helix=helix, rest_curvatures=rest,
                            fit_max_error=np.asarray(fit.max_error), fit_mean_error=np.asarray(fit.mean_error),

@@ -38,6 +38,7 @@ import numpy as np
 from numba import njit
 from threadpoolctl import threadpool_limits
 
+from .rods import clothoid as cl
 from .rods import superhelix as sh
 
 RTOL = 1e-12  # relative part of the certified gap lambda_max - theta
@@ -48,7 +49,10 @@ LANCZOS_STEPS = 12
 
 def stiffness_ratios(helix: sh.SuperHelix, stiffness_diag, linear_density: float, gravity,
                      chunk: int = 512, progress=None) -> np.ndarray:
-    """rho per strand (S,): lambda_max(K^-1/2 dF/dq K^-1/2) over the strand's real dofs (module docstring)."""
+    """rho per strand (S,): lambda_max(K^-1/2 dF/dq K^-1/2) over the strand's real dofs (module docstring).
+    A Super Space Clothoid: :func:`clothoid_stiffness_ratios` (dense)."""
+    if isinstance(helix, cl.SuperClothoid):
+        return clothoid_stiffness_ratios(helix, stiffness_diag, linear_density, gravity, progress=progress)
     order = np.argsort(helix.n_elements, kind="stable")  # similar lengths together: less padding
     out = np.empty(helix.n_strands)
     with threadpool_limits(1, user_api="blas"):
@@ -62,6 +66,36 @@ def stiffness_ratios(helix: sh.SuperHelix, stiffness_diag, linear_density: float
             for i in np.flatnonzero(~ok):  # not certified: the dense route
                 lam[i] = np.linalg.eigvalsh(_dense(u[i], v[i], d[i], int(sub.n_elements[i])))[-1]
             out[ids] = lam
+            if progress is not None:
+                progress.update(len(ids))
+    return out
+
+
+def _clothoid_whitening(K: np.ndarray) -> np.ndarray:
+    """L^-T for K = L L^T (K dense SPD): A = L^-1 M L^-T has the eigenvalues of K^-1/2 M K^-1/2 (similar
+    matrices), and y = L^T dq maps the constraint rows C dq = 0 to C L^-T y = 0."""
+    L = np.linalg.cholesky(K)
+    return np.linalg.inv(L).T
+
+
+def clothoid_stiffness_ratios(rod: cl.SuperClothoid, stiffness_diag, linear_density: float, gravity,
+                              chunk: int = 128, progress=None) -> np.ndarray:
+    """The stiffness ratio of Super Space Clothoids: lambda_max(L^-1 dF/dq L^-T), K = L L^T block tridiagonal
+    (:func:`groomtool.rods.clothoid.stiffness_matrix`), dF/dq by the complex step
+    (:func:`groomtool.rods.clothoid.gravity_force_jacobian`), dense eigvalsh per strand over its real dofs."""
+    order = np.argsort(rod.n_elements, kind="stable")
+    out = np.empty(rod.n_strands)
+    with threadpool_limits(1, user_api="blas"):
+        for start in range(0, rod.n_strands, chunk):
+            ids = order[start:start + chunk]
+            sub = rod.subset(ids)
+            dF = cl.gravity_force_jacobian(sub, linear_density, gravity)
+            K = cl.stiffness_matrix(sub, stiffness_diag)
+            for i in range(len(ids)):
+                n = 3 * (int(sub.n_elements[i]) + 1)
+                Wm = _clothoid_whitening(K[i, :n, :n])
+                A = Wm.T @ dF[i, :n, :n] @ Wm
+                out[ids[i]] = float(np.linalg.eigvalsh(0.5 * (A + A.T))[-1])
             if progress is not None:
                 progress.update(len(ids))
     return out
@@ -464,6 +498,9 @@ def contact_load_hessians(helix: sh.SuperHelix, strands, point_strand, point_s, 
     that at most ``chunk_dofs`` perturbed copies are built at once."""
     from .contact.jacobian import point_forces_generalized
 
+    clothoid = isinstance(helix, cl.SuperClothoid)
+    mod = cl if clothoid else sh
+    extra = 1 if clothoid else 0  # a clothoid's dofs are its N + 1 nodes
     strands = np.asarray(strands, dtype=np.int64)
     point_strand = np.asarray(point_strand, dtype=np.int64)
     order = np.argsort(point_strand, kind="stable")
@@ -472,25 +509,32 @@ def contact_load_hessians(helix: sh.SuperHelix, strands, point_strand, point_s, 
     start = 0
     while start < len(strands):
         stop, copies = start, 0
-        while stop < len(strands) and (copies == 0 or copies + 6 * helix.n_elements[strands[stop]] <= chunk_dofs):
-            copies += 6 * int(helix.n_elements[strands[stop]])
+        while stop < len(strands) and (copies == 0 or copies + 6 * (helix.n_elements[strands[stop]] + extra)
+                                       <= chunk_dofs):
+            copies += 6 * (int(helix.n_elements[strands[stop]]) + extra)
             stop += 1
         ids = strands[start:stop]
         sub = helix.subset(ids)
-        N = sub.max_elements
+        N = sub.max_elements + extra
         owner, signs, dofs = [], [], []
         for i in range(len(ids)):
-            n = 3 * int(sub.n_elements[i])
+            n = 3 * (int(sub.n_elements[i]) + extra)
             owner.append(np.full(2 * n, i))
             signs.append(np.repeat([1.0, -1.0], n))
             dofs.append(np.tile(np.arange(n), 2))
         owner, signs, dofs = np.concatenate(owner), np.concatenate(signs), np.concatenate(dofs)
         elem, comp = dofs // 3, dofs % 3
-        step = rotation_step / sub.lengths[owner, elem]
+        if clothoid:  # node i: the mean length of its (one or two) elements
+            lpad = np.concatenate([np.zeros((len(ids), 1)), sub.lengths, np.zeros((len(ids), 1))], axis=1)
+            both = lpad[:, :-1] + lpad[:, 1:]
+            nadj = (lpad[:, :-1] > 0).astype(float) + (lpad[:, 1:] > 0)
+            step = rotation_step / (both / np.maximum(nadj, 1.0))[owner, elem]
+        else:
+            step = rotation_step / sub.lengths[owner, elem]
         q = sub.curvatures[owner].copy()
         q[np.arange(len(owner)), elem, comp] += signs * step
-        copies_helix = sh.SuperHelix(sub.root_positions[owner], sub.root_frames[owner], sub.lengths[owner], q,
-                                     sub.n_elements[owner])
+        copies_helix = type(sub)(sub.root_positions[owner], sub.root_frames[owner], sub.lengths[owner], q,
+                                 sub.n_elements[owner])
         # every copy carries the loads of its strand
         lo = np.searchsorted(ps, ids, "left")
         hi = np.searchsorted(ps, ids, "right")
@@ -499,11 +543,11 @@ def contact_load_hessians(helix: sh.SuperHelix, strands, point_strand, point_s, 
         first = np.repeat(lo[owner], count)
         within = np.arange(len(copy_of_point)) - np.repeat(np.cumsum(count) - count, count)
         pidx = first + within
-        g = point_forces_generalized(copies_helix, sh.kinematics(copies_helix), copy_of_point, pss[pidx], pf[pidx])
+        g = point_forces_generalized(copies_helix, mod.kinematics(copies_helix), copy_of_point, pss[pidx], pf[pidx])
         g = g.reshape(len(owner), 3 * N)
         pos = 0
         for i in range(len(ids)):
-            n = 3 * int(sub.n_elements[i])
+            n = 3 * (int(sub.n_elements[i]) + extra)
             plus, minus = g[pos:pos + n, :n], g[pos + n:pos + 2 * n, :n]
             h = step[pos:pos + n]
             D = ((plus - minus) / (2.0 * h[:, None])).T  # column k: d g / d q_k
@@ -571,16 +615,26 @@ def held_stiffness_ratios(helix: sh.SuperHelix, stiffness_diag, linear_density: 
     if progress is not None:
         progress.reset(total=len(strands))
     hessians = contact_load_hessians(helix, strands, point_strand, point_s, point_force)
+    clothoid = isinstance(helix, cl.SuperClothoid)
     with threadpool_limits(1, user_api="blas"):
         for chunk_start in range(0, len(strands), 256):
             ids = strands[chunk_start:chunk_start + 256]
             sub = helix.subset(ids)
-            dF = sh.gravity_force_jacobian(sub, linear_density, gravity)
-            K = sh.stiffness(sub, stiffness_diag).reshape(len(ids), -1)
+            if clothoid:  # K = L L^T block tridiagonal: whitening by L^-T (same eigenvalues)
+                dF = cl.gravity_force_jacobian(sub, linear_density, gravity)
+                K = cl.stiffness_matrix(sub, stiffness_diag)
+            else:
+                dF = sh.gravity_force_jacobian(sub, linear_density, gravity)
+                K = sh.stiffness(sub, stiffness_diag).reshape(len(ids), -1)
             for i, s in enumerate(ids):
-                n = 3 * int(sub.n_elements[i])
-                scale = 1.0 / np.sqrt(K[i, :n])
-                A = scale[:, None] * (dF[i, :n, :n] + hessians[chunk_start + i]) * scale[None, :]
+                if clothoid:
+                    n = 3 * (int(sub.n_elements[i]) + 1)
+                    Wm = _clothoid_whitening(K[i, :n, :n])
+                    A = Wm.T @ (dF[i, :n, :n] + hessians[chunk_start + i]) @ Wm
+                else:
+                    n = 3 * int(sub.n_elements[i])
+                    scale = 1.0 / np.sqrt(K[i, :n])
+                    A = scale[:, None] * (dF[i, :n, :n] + hessians[chunk_start + i]) * scale[None, :]
                 A = 0.5 * (A + A.T)
                 lo, hi = np.searchsorted(head_strand, [s, s + 1])
                 rows = [3 * c + np.arange(3) if stick else np.array([3 * c])
@@ -588,7 +642,8 @@ def held_stiffness_ratios(helix: sh.SuperHelix, stiffness_diag, linear_density: 
                 C = None
                 if rows:
                     rows = np.concatenate(rows)
-                    C = _csr_block(H, rows, cols[s], cols[s] + n) * scale[None, :]
+                    C = _csr_block(H, rows, cols[s], cols[s] + n)
+                    C = C @ Wm if clothoid else C * scale[None, :]
                     blocked_count[s] = len(rows)
                 ratio[s] = constrained_top_eigenvalue(A, C)
                 if progress is not None:

@@ -16,7 +16,7 @@ import numpy as np
 from ..solver_choice import Q0_TOLERANCE  # --q0-tolerance default (docs/solvers.md section 11)
 from ..version import __version__
 from . import batch_cmd, export_cmd, simulate_cmd, view_cmd
-from .options import (EXIT_INTERNAL_ERROR, EXIT_NOT_CONVERGED, EXIT_OK, EXIT_USER_ERROR, UserError,
+from .options import (EXIT_INTERNAL_ERROR, EXIT_NOT_CONVERGED, EXIT_OK, EXIT_USER_ERROR, MODEL_CHOICES, UserError,
                       add_input_options, add_material_options, add_scale_option, cli_message, invert_params)
 
 
@@ -109,6 +109,10 @@ def build_parser() -> argparse.ArgumentParser:
     inv.add_argument("--format", action="append", choices=["npz", "obj", "json", "usd", "abc", "vtp", "hair"], default=None,
                      help="output formats (repeatable; default npz, obj, json); rest.npz and report.json are "
                           "always written: check, view, simulate and export read them")
+    inv.add_argument("--model", choices=list(MODEL_CHOICES), default="superhelix",
+                     help="rod model: superhelix (default; piecewise helices, C1) or clothoid (Super Space Clothoids: "
+                          "curvature linear per element and continuous, C2; docs/clothoid.md; its results are not "
+                          "yet read by check, simulate, view or the exporters)")
     add_material_options(inv)
     inv.add_argument("-q", "--quiet", action="store_true", help="no progress bars and no summary")
 
@@ -266,7 +270,8 @@ def cmd_invert(args) -> int:
 
 def summary(result, written) -> str:
     r = result.report
-    lines = [f"groom invert: {r['strands']} strands, {r['elements']} helix elements  ({r['input']})",
+    kind = "clothoid" if r.get("model") == "clothoid" else "helix"
+    lines = [f"groom invert: {r['strands']} strands, {r['elements']} {kind} elements  ({r['input']})",
              f"  fit          max error {r['fit']['max_error_m'] * 1e3:.3f} mm, mean {r['fit']['mean_error_m'] * 1e3:.3f} mm"
              f" (tolerance {r['fit']['tolerance_m'] * 1e3:.3f} mm)"]
     if "contacts" in r:

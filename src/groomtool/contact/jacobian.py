@@ -16,16 +16,73 @@ import numpy as np
 import scipy.sparse as sp
 from numba import njit
 
+from ..rods import clothoid as cl
 from ..rods import superhelix as sh
 
+CLOTHOID_CHUNK = 4096  # contacts per batch of dense clothoid point Jacobians
 
-def contact_jacobian(helix: sh.SuperHelix, contacts, kin: sh.Kinematics | None = None) -> sp.csr_matrix:
+
+def clothoid_contact_jacobian(rod: cl.SuperClothoid, contacts, kin: cl.Kinematics | None = None) -> sp.csr_matrix:
+    """H for Super Space Clothoids, (3m, 3 n_nodes): H_i = F_i [J_a, -J_b] with J = dC/dq at the nodes
+    (:func:`groomtool.rods.clothoid.point_jacobians`: blocks of nodes 0 .. elem + 1 of the point's strand),
+    assembled in batches of contacts from the dense point Jacobians (a self-contact's blocks are summed)."""
+    kin = kin if kin is not None else cl.kinematics(rod)
+    node_offsets = rod.flat_offsets()
+    n_dofs = 3 * int(node_offsets[-1])
+    m = len(contacts.strand_a)
+    if m == 0:
+        return sp.csr_matrix((0, n_dofs))
+    frames = np.asarray(contacts.frame, dtype=np.float64).reshape(m, 3, 3)
+    rows, cols, vals = [], [], []
+    for side, strands, arcs, sign in (("a", contacts.strand_a, contacts.s_a, 1.0),
+                                      ("b", contacts.strand_b, contacts.s_b, -1.0)):
+        strands = np.asarray(strands, dtype=np.int64)
+        arcs = np.asarray(arcs, dtype=np.float64)
+        on = np.flatnonzero(strands >= 0)
+        for start in range(0, len(on), CLOTHOID_CHUNK):
+            idx = on[start:start + CLOTHOID_CHUNK]
+            J, elem = cl.point_jacobians(rod, strands[idx], arcs[idx], kin)  # (P, N + 1, 3, 3)
+            blk = sign * np.einsum("prk,pnkc->pnrc", frames[idx], J)  # (P, node, row, col)
+            P, N1 = J.shape[:2]
+            node = np.arange(N1)[None, :]
+            keep = node <= (elem[:, None] + 1)
+            p_i, n_i = np.nonzero(keep)
+            r = 3 * idx[p_i][:, None, None] + np.arange(3)[None, :, None]
+            c = 3 * (node_offsets[strands[idx]][p_i] + n_i)[:, None, None] + np.arange(3)[None, None, :]
+            rows.append(np.broadcast_to(r, (len(p_i), 3, 3)).ravel())
+            cols.append(np.broadcast_to(c, (len(p_i), 3, 3)).ravel())
+            vals.append(blk[p_i, n_i].ravel())
+    H = sp.coo_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(3 * m, n_dofs))
+    H = H.tocsr()
+    H.sum_duplicates()
+    H.sort_indices()
+    return H
+
+
+def clothoid_point_forces_generalized(rod: cl.SuperClothoid, kin: cl.Kinematics, strand, s, f) -> np.ndarray:
+    """Q = sum_p (dC(s_p)/dq)^T f_p, (S, N + 1, 3), from the dense clothoid point Jacobians, in batches."""
+    S, N1 = rod.curvatures.shape[:2]
+    out = np.zeros((S, N1, 3))
+    strand = np.asarray(strand, dtype=np.int64)
+    s = np.asarray(s, dtype=np.float64)
+    f = np.asarray(f, dtype=np.float64).reshape(-1, 3)
+    for start in range(0, len(strand), CLOTHOID_CHUNK):
+        sl = slice(start, start + CLOTHOID_CHUNK)
+        J, _ = cl.point_jacobians(rod, strand[sl], s[sl], kin)
+        np.add.at(out, strand[sl], np.einsum("pnkc,pk->pnc", J, f[sl]))
+    return out
+
+
+def contact_jacobian(helix, contacts, kin=None) -> sp.csr_matrix:
     """H as a sparse (3m, 3E) matrix, E the number of real elements of all strands.
 
     Written directly in CSR form (sorted indices) by :func:`_fill_csr`: the 3 rows of contact i share
     the columns of elements 0..elem_a of strand a and 0..elem_b of strand b (one range, the union,
-    for a self-contact, whose overlapping blocks are summed); memory O(nnz(H)).
+    for a self-contact, whose overlapping blocks are summed); memory O(nnz(H)).  A Super Space Clothoid
+    (columns: its nodes) goes to :func:`clothoid_contact_jacobian`.
     """
+    if isinstance(helix, cl.SuperClothoid):
+        return clothoid_contact_jacobian(helix, contacts, kin)
     kin = kin if kin is not None else sh.kinematics(helix)
     dof_offsets = helix.flat_offsets()
     n_dofs = 3 * int(dof_offsets[-1])
@@ -145,7 +202,8 @@ def generalized_contact_force(helix: sh.SuperHelix, contacts, forces: np.ndarray
     (The equilibrium check uses this; it never builds H.  tests/reference/contact.py has the dense
     point-Jacobian version the tests compare with.)
     """
-    kin = kin if kin is not None else sh.kinematics(helix)
+    if kin is None:
+        kin = cl.kinematics(helix) if isinstance(helix, cl.SuperClothoid) else sh.kinematics(helix)
     frames = np.asarray(contacts.frame, dtype=np.float64).reshape(-1, 3, 3)
     world = np.einsum("pji,pj->pi", frames, np.asarray(forces, dtype=np.float64).reshape(-1, 3))
     strand = np.concatenate([np.asarray(contacts.strand_a, dtype=np.int64),
@@ -158,7 +216,10 @@ def generalized_contact_force(helix: sh.SuperHelix, contacts, forces: np.ndarray
 def point_forces_generalized(helix: sh.SuperHelix, kin: sh.Kinematics, strand, s, f) -> np.ndarray:
     """The generalised force of world point forces: Q = sum_p (dC(s_p)/dq)^T f_p, (S, N, 3), for forces f_p
     (P, 3) at arc lengths s_p on strands ``strand`` (P,), by the suffix sums of
-    :func:`generalized_contact_force` in O(S N + P)."""
+    :func:`generalized_contact_force` in O(S N + P).  A Super Space Clothoid: (S, N + 1, 3), from its dense point
+    Jacobians (:func:`clothoid_point_forces_generalized`)."""
+    if isinstance(helix, cl.SuperClothoid):
+        return clothoid_point_forces_generalized(helix, kin, strand, s, f)
     S, N = helix.curvatures.shape[:2]
     out = np.zeros((S, N, 3))
     if len(strand):

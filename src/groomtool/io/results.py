@@ -25,6 +25,7 @@ import numpy as np
 
 from ..groom import Groom, GroomError
 from ..material import Material
+from ..rods import clothoid as cl
 from ..rods import superhelix as sh
 from .atomic import atomic_open
 from .obj import write_obj
@@ -34,6 +35,20 @@ from .result_check import check_result_arrays, read_report
 NPZ_SCHEMA_VERSION = 1
 REQUIRED = ("strand_offsets", "element_lengths", "root_positions", "root_frames", "curvatures",
             "rest_curvatures")
+#: rest.npz "model": absent in results written before issue 20 (Super-Helices)
+MODELS = ("superhelix", "clothoid")
+#: the nodal data of a Super Space Clothoid result (model "clothoid"): node offsets (S + 1,), the fitted and the
+#: rest Darboux vectors at the nodes (n_nodes, 3); its "curvatures" / "rest_curvatures" are element means
+CLOTHOID_KEYS = ("clothoid_node_offsets", "clothoid_curvatures", "clothoid_rest_curvatures")
+
+
+class ModelError(GroomError):
+    """A result of a rod model the caller cannot take (a Super Space Clothoid where a Super-Helix is needed)."""
+
+
+def _element_means(rod, nodal: np.ndarray) -> np.ndarray:
+    """(E, 3) the mean of the nodal Darboux vector over each element ((q_j + q_{j+1}) / 2, flat)."""
+    return (0.5 * (nodal[:, :-1] + nodal[:, 1:]))[rod.element_mask]
 
 
 def input_strand_index(n_strands: int, repairs: dict | None) -> np.ndarray:
@@ -44,18 +59,28 @@ def input_strand_index(n_strands: int, repairs: dict | None) -> np.ndarray:
 
 
 def result_arrays(result) -> dict:
-    """The arrays of rest.npz (flat, unpadded, SI units)."""
+    """The arrays of rest.npz (flat, unpadded, SI units).  A Super Space Clothoid result (model "clothoid") also
+    carries its nodal data (CLOTHOID_KEYS); its per-element "curvatures" / "rest_curvatures" are the element means
+    of the nodal values (a Super-Helix reader that ignores "model" would get an approximation, not the
+    equilibrium: :meth:`SavedResult.helix` refuses such a result)."""
     helix = result.helix
     mat = result.material
-    flat_offsets = helix.flat_offsets()
+    clothoid = isinstance(helix, cl.SuperClothoid)
+    if clothoid:
+        flat_offsets = np.concatenate([[0], np.cumsum(helix.n_elements)]).astype(np.int64)
+        curv, rest = _element_means(helix, helix.curvatures), _element_means(helix, result.rest_curvatures)
+    else:
+        flat_offsets = helix.flat_offsets()
+        curv, rest = helix.to_flat(helix.curvatures), helix.to_flat(result.rest_curvatures)
     arrays = {
         "schema_version": np.array(NPZ_SCHEMA_VERSION),
+        "model": np.array("clothoid" if clothoid else "superhelix"),
         "strand_offsets": flat_offsets,
-        "element_lengths": helix.to_flat(helix.lengths),
+        "element_lengths": helix.lengths[helix.element_mask],
         "root_positions": helix.root_positions,
         "root_frames": helix.root_frames,
-        "curvatures": helix.to_flat(helix.curvatures),
-        "rest_curvatures": helix.to_flat(result.rest_curvatures),
+        "curvatures": curv,
+        "rest_curvatures": rest,
         "fit_max_error": result.fit_max_error,
         "stiffness_ratio": np.zeros(0),
         "young_modulus": np.array(mat.young_modulus),
@@ -96,6 +121,10 @@ def result_arrays(result) -> dict:
     head = result.head
     arrays["head_vertices"] = np.asarray(head.vertices, dtype=np.float64) if head is not None else np.zeros((0, 3))
     arrays["head_faces"] = np.asarray(head.faces, dtype=np.int64) if head is not None else np.zeros((0, 3), np.int64)
+    if clothoid:
+        arrays.update({"clothoid_node_offsets": helix.flat_offsets(),
+                       "clothoid_curvatures": helix.to_flat(helix.curvatures),
+                       "clothoid_rest_curvatures": helix.to_flat(result.rest_curvatures)})
     arrays.update(getattr(result, "extra_arrays", {}) or {})
     return arrays
 
@@ -187,8 +216,48 @@ def up_axis(arrays: dict) -> str:
     return "z" if int(np.argmax(np.abs(g))) == 2 else "y"
 
 
+def result_model(arrays: dict) -> str:
+    """rest.npz's rod model: "superhelix" (also when absent: results written before issue 20) or "clothoid"."""
+    model = str(np.asarray(arrays.get("model", "superhelix")))
+    if model not in MODELS:
+        raise GroomError(f"{arrays.get('source', 'rest.npz')}: unknown rod model {model!r} (known: {', '.join(MODELS)})")
+    return model
+
+
+def result_clothoid(arrays: dict, rest: bool = False) -> cl.SuperClothoid:
+    """The fitted Super Space Clothoids of a model "clothoid" result (``rest=True``: with the nodal rest
+    curvatures), padded."""
+    if result_model(arrays) != "clothoid":
+        raise ModelError(f"{arrays.get('source', 'rest.npz')}: a Super-Helix result, not a Super Space Clothoid one")
+    missing = [k for k in CLOTHOID_KEYS if k not in arrays]
+    if missing:
+        raise GroomError(f"{arrays.get('source', 'rest.npz')}: a clothoid result without {', '.join(missing)}")
+    offsets = np.asarray(arrays["strand_offsets"], dtype=np.int64)
+    counts = np.diff(offsets)
+    nodes = np.asarray(arrays["clothoid_node_offsets"], dtype=np.int64)
+    q_flat = np.asarray(arrays["clothoid_rest_curvatures" if rest else "clothoid_curvatures"],
+                        dtype=np.float64).reshape(-1, 3)
+    if nodes.shape != offsets.shape or np.any(np.diff(nodes) != counts + 1) or nodes[-1] != len(q_flat):
+        raise GroomError(f"{arrays.get('source', 'rest.npz')}: clothoid_node_offsets do not match the elements")
+    if not np.all(np.isfinite(q_flat)):
+        raise GroomError(f"{arrays.get('source', 'rest.npz')}: non-finite clothoid curvatures")
+    n_max = int(counts.max()) if len(counts) else 0
+    mask = np.arange(n_max)[None, :] < counts[:, None]
+    lengths = np.zeros(mask.shape)
+    lengths[mask] = arrays["element_lengths"]
+    q = np.zeros((len(counts), n_max + 1, 3))
+    q[np.arange(n_max + 1)[None, :] <= counts[:, None]] = q_flat
+    return cl.SuperClothoid(arrays["root_positions"], arrays["root_frames"], lengths, q, counts)
+
+
 def result_helix(arrays: dict, rest: bool = False) -> sh.SuperHelix:
-    """The fitted Super-Helices (``rest=True``: with the rest curvatures), padded."""
+    """The fitted Super-Helices (``rest=True``: with the rest curvatures), padded.  A Super Space Clothoid result
+    raises :class:`ModelError` (the simulator, ``groom check`` and the exporters take Super-Helices only)."""
+    if result_model(arrays) == "clothoid":
+        raise ModelError(f"{arrays.get('source', 'rest.npz')}: a Super Space Clothoid result (groom invert --model "
+                         "clothoid): groom check, groom simulate and the exporters take Super-Helix results only so "
+                         "far (docs/clothoid.md, 'Not done'); read it with groomtool.io.results.read_result(...)"
+                         ".clothoid()")
     offsets = np.asarray(arrays["strand_offsets"], dtype=np.int64)
     counts = np.diff(offsets)
     n_max = int(counts.max()) if len(counts) else 0
@@ -249,13 +318,28 @@ class SavedResult:
         return str(self.arrays["source"]) if "source" in self.arrays else ""
 
     def helix(self, rest: bool = False) -> sh.SuperHelix:
-        """The fitted Super-Helices, padded (``rest=True``: with the rest curvatures)."""
+        """The fitted Super-Helices, padded (``rest=True``: with the rest curvatures); :class:`ModelError` for a
+        Super Space Clothoid result (:meth:`clothoid`)."""
         return result_helix(self.arrays, rest=rest)
 
     @property
+    def model(self) -> str:
+        """"superhelix" or "clothoid" (rest.npz "model"; absent: "superhelix")."""
+        return result_model(self.arrays)
+
+    def clothoid(self, rest: bool = False) -> cl.SuperClothoid:
+        """The fitted Super Space Clothoids of a model "clothoid" result, padded (``rest=True``: nodal rest
+        curvatures)."""
+        return result_clothoid(self.arrays, rest=rest)
+
+    def rod(self, rest: bool = False):
+        """The fitted rods of either model (:meth:`helix` or :meth:`clothoid`)."""
+        return self.clothoid(rest) if self.model == "clothoid" else self.helix(rest)
+
+    @property
     def rest_curvatures(self) -> np.ndarray:
-        """(S, N, 3) rest curvatures, padded like :meth:`helix`."""
-        return self.helix(rest=True).curvatures
+        """(S, N, 3) rest curvatures, padded like :meth:`helix` (clothoid: nodal, (S, N + 1, 3), like :meth:`clothoid`)."""
+        return self.rod(rest=True).curvatures
 
     def scalar(self, name: str, default=None):
         """A scalar array of rest.npz as a float, ``default`` when absent."""
