@@ -204,3 +204,21 @@ def test_cli_round_trip_and_clear_refusals(example, tmp_path):
     assert main(["invert", str(groom_path), "-o", str(out2), "--quiet"]) == EXIT_OK
     assert read_result(out2).model == "superhelix"
     assert json.loads((out2 / "report.json").read_text())["model"] == "superhelix"
+
+
+def test_python_api(example, tmp_path):
+    import groomtool
+    from groomtool import api
+
+    groom_path, _ = example
+    groom = load_groom(groom_path)
+    result = groomtool.invert(_subset(groom, [1, 2]), model="clothoid", stabilize="none")
+    assert result.model == "clothoid" and result.report["equilibrium"]["max_relative_residual"] < 1e-9
+    with pytest.raises(ModelError, match="Super-Helix results only"):
+        api.simulate(result, seconds=0.01)
+    result.save(tmp_path / "r")
+    assert read_result(tmp_path / "r").model == "clothoid"
+    with pytest.raises(ModelError):
+        groomtool.export(tmp_path / "r", tmp_path / "r.vtp")
+    with pytest.raises(ValueError, match="model"):
+        groomtool.invert(groom, model="helix")

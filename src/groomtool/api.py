@@ -65,7 +65,8 @@ def invert(groom, head=None, *, units="m", quiet: bool = True, **params) -> Inve
     """Rest curvatures that make ``groom`` an equilibrium under gravity (and contact).
 
     groom: a ``Groom`` or a file path (read with ``units``); head: a trimesh, a mesh path or None.
-    params: see :func:`inversion_params`, e.g. ``contacts="all", young_modulus=2.5e9, radius=35e-6``.
+    params: see :func:`inversion_params`, e.g. ``contacts="all", young_modulus=2.5e9, radius=35e-6``;
+    ``model="clothoid"`` fits Super Space Clothoids instead of Super-Helices (docs/clothoid.md).
     Returns an ``InversionResult``: ``.rest_curvatures`` (S, N, 3) 1/m, ``.rest_shape()``,
     ``.contacts``, ``.forces``, ``.report`` and ``.save(outdir, formats=("npz", "obj", "json"))``.
     Raises ``groomtool.invert.SolverFailure`` when the contact solver does not converge.
@@ -99,6 +100,11 @@ def simulate(result, seconds: float = 1.0, **options):
     from .simulate import simulate as _simulate
 
     if isinstance(result, InversionResult):
+        if result.model != "superhelix":
+            from .io.results import ModelError
+
+            raise ModelError("simulate takes Super-Helix results only so far: this is a Super Space Clothoid result "
+                             "(model='clothoid'; docs/clothoid.md, 'Not done')")
         helix, rest, material, gravity, head = (result.helix, result.rest_curvatures, result.material,
                                                 result.gravity, result.head)
         factor = result.stiffness_factor
