@@ -73,32 +73,58 @@ def _cone_rows(mu: np.ndarray):
     return (np.concatenate(rows), np.concatenate(cols), np.concatenate(vals)), row, n_zero, n_nonneg, soc.size
 
 
-def _settings(tol: float, max_iter: int, threads: int, linear_solver: str, verbose: bool, time_limit: float | None):
-    s = clarabel.DefaultSettings()
-    s.verbose = verbose
-    s.max_iter = int(max_iter)
-    s.tol_gap_abs = tol
-    s.tol_gap_rel = tol
-    s.tol_feas = tol
-    s.tol_ktratio = max(tol, 1e-10)
-    s.max_threads = int(threads)
-    if time_limit is not None:
-        s.time_limit = float(time_limit)
-    if linear_solver != "auto":
-        s.direct_solve_method = linear_solver
-    return s
+@dataclass(frozen=True)
+class Settings:
+    """What solve_factored and solve_assembled take (keywords): stopping tolerance (clarabel's gap,
+    feasibility and KKT-ratio tolerances), iteration budget, threads, the KKT linear solver ("auto":
+    clarabel's default; "qdldl", "faer"), clarabel's own printing, a time limit in seconds."""
+
+    tol: float = 1e-9
+    max_iter: int = 200
+    threads: int = 1
+    linear_solver: str = "auto"
+    verbose: bool = False
+    time_limit: float | None = None
+
+    def clarabel(self):
+        s = clarabel.DefaultSettings()
+        s.verbose = self.verbose
+        s.max_iter = int(self.max_iter)
+        s.tol_gap_abs = self.tol
+        s.tol_gap_rel = self.tol
+        s.tol_feas = self.tol
+        s.tol_ktratio = max(self.tol, 1e-10)
+        s.max_threads = int(self.threads)
+        if self.time_limit is not None:
+            s.time_limit = float(self.time_limit)
+        if self.linear_solver != "auto":
+            s.direct_solve_method = self.linear_solver
+        return s
 
 
-def _run(P, q, A, bvec, cones, settings, linear_solver):
-    """clarabel.DefaultSolver(...).solve(), falling back to qdldl if the requested solver is absent."""
+def _run(P, q, A, bvec, cones, settings: Settings, t0: float, m3: int, objective) -> ClarabelOutcome:
+    """clarabel.DefaultSolver(...).solve(), falling back to qdldl if the requested linear solver is absent;
+    r = the first m3 entries of clarabel's x (all of them in the assembled form)."""
+    opts = settings.clarabel()
+    setup_s = time.perf_counter() - t0
     try:
-        solver = clarabel.DefaultSolver(P, q, A, bvec, cones, settings)
+        solver = clarabel.DefaultSolver(P, q, A, bvec, cones, opts)
     except Exception:
-        if linear_solver in ("auto", "qdldl"):
+        if settings.linear_solver in ("auto", "qdldl"):
             raise
-        settings.direct_solve_method = "qdldl"
-        solver = clarabel.DefaultSolver(P, q, A, bvec, cones, settings)
-    return solver.solve()
+        opts.direct_solve_method = "qdldl"
+        solver = clarabel.DefaultSolver(P, q, A, bvec, cones, opts)
+    sol = solver.solve()
+    r = np.array(sol.x[:m3])
+    return ClarabelOutcome(
+        r=r,
+        status=str(sol.status),
+        iterations=int(sol.iterations),
+        objective=objective(r),
+        solve_s=float(sol.solve_time),
+        setup_s=setup_s,
+        kkt_size=int(P.shape[0] + A.shape[0]),
+    )
 
 
 def _cones(n_eq: int, n_zero: int, n_nonneg: int, n_soc: int):
@@ -125,18 +151,12 @@ def strand_factor(problem) -> sp.csr_matrix:
     return sp.block_diag(mats, format="csr")
 
 
-def solve_factored(
-    problem,
-    *,
-    tol: float = 1e-9,
-    max_iter: int = 200,
-    threads: int = 1,
-    linear_solver: str = "auto",
-    verbose: bool = False,
-    time_limit: float | None = None,
-) -> ClarabelOutcome:
-    """Solve the SOCQP of a ContactProblem with clarabel in the sparse factored form (module docstring)."""
+def solve_factored(problem, **settings) -> ClarabelOutcome:
+    """Solve the SOCQP of a ContactProblem with clarabel in the sparse factored form (module docstring).
+    ``settings``: the fields of :class:`Settings` (tol=1e-9, max_iter=200, threads=1, linear_solver="auto",
+    verbose=False, time_limit=None)."""
     t0 = time.perf_counter()
+    settings = Settings(**settings)
     m3, n = problem.H.shape
     mu = problem.mu
     LtHt = (problem.H @ strand_factor(problem)).T.tocsr()  # (n, 3m) = L^T H^T
@@ -150,36 +170,14 @@ def solve_factored(
     cone = sp.csr_matrix((cv, (cr, cc)), shape=(n_cone_rows, m3 + n))
     A = sp.vstack([eq, cone], format="csc")
     bvec = np.zeros(n + n_cone_rows)
-    cones = _cones(n, n_zero, n_nonneg, n_soc)
-    settings = _settings(tol, max_iter, threads, linear_solver, verbose, time_limit)
-    setup_s = time.perf_counter() - t0
-    sol = _run(P, q, A, bvec, cones, settings, linear_solver)
-    r = np.array(sol.x[:m3])
-    return ClarabelOutcome(
-        r=r,
-        status=str(sol.status),
-        iterations=int(sol.iterations),
-        objective=problem.objective(r),
-        solve_s=float(sol.solve_time),
-        setup_s=setup_s,
-        kkt_size=int(P.shape[0] + A.shape[0]),
-    )
+    return _run(P, q, A, bvec, _cones(n, n_zero, n_nonneg, n_soc), settings, t0, m3, problem.objective)
 
 
-def solve_assembled(
-    W,
-    b: np.ndarray,
-    mu: np.ndarray,
-    *,
-    tol: float = 1e-9,
-    max_iter: int = 200,
-    threads: int = 1,
-    linear_solver: str = "auto",
-    verbose: bool = False,
-    time_limit: float | None = None,
-) -> ClarabelOutcome:
-    """Solve min 1/2 r^T W r + b^T r, r_i in K_mu_i with clarabel and P = W (W sparse, symmetric PSD)."""
+def solve_assembled(W, b: np.ndarray, mu: np.ndarray, **settings) -> ClarabelOutcome:
+    """Solve min 1/2 r^T W r + b^T r, r_i in K_mu_i with clarabel and P = W (W sparse, symmetric PSD).
+    ``settings``: as solve_factored."""
     t0 = time.perf_counter()
+    settings = Settings(**settings)
     W = sp.csr_matrix(W, dtype=np.float64)
     m3 = W.shape[0]
     b = np.asarray(b, dtype=np.float64).reshape(-1)
@@ -187,17 +185,5 @@ def solve_assembled(
     P = sp.triu(0.5 * (W + W.T), format="csc")
     (cr, cc, cv), n_rows, n_zero, n_nonneg, n_soc = _cone_rows(mu)
     A = sp.csc_matrix((cv, (cr, cc)), shape=(n_rows, m3))
-    cones = _cones(0, n_zero, n_nonneg, n_soc)
-    settings = _settings(tol, max_iter, threads, linear_solver, verbose, time_limit)
-    setup_s = time.perf_counter() - t0
-    sol = _run(P, b, A, np.zeros(n_rows), cones, settings, linear_solver)
-    r = np.array(sol.x)
-    return ClarabelOutcome(
-        r=r,
-        status=str(sol.status),
-        iterations=int(sol.iterations),
-        objective=float(0.5 * r @ (W @ r) + b @ r),
-        solve_s=float(sol.solve_time),
-        setup_s=setup_s,
-        kkt_size=int(P.shape[0] + A.shape[0]),
-    )
+    return _run(P, b, A, np.zeros(n_rows), _cones(0, n_zero, n_nonneg, n_soc), settings, t0, m3,
+                lambda r: float(0.5 * r @ (W @ r) + b @ r))
