@@ -51,6 +51,17 @@ _FM = {"contract", "arcp", "nsz"}
 # ----------------------------------------------------------------------------------------------
 # kernels
 # ----------------------------------------------------------------------------------------------
+@njit(cache=True, inline="always", fastmath=_FM)
+def _pack_sym6(a, out):
+    """A row-major 3x3 (9-vector) as the symmetric 6-vector (a00, a01, a02, a11, a12, a22), off-diagonals averaged."""
+    out[0] = a[0]
+    out[1] = 0.5 * (a[1] + a[3])
+    out[2] = 0.5 * (a[2] + a[6])
+    out[3] = a[4]
+    out[4] = 0.5 * (a[5] + a[7])
+    out[5] = a[8]
+
+
 @njit(cache=True, fastmath=_FM)
 def normalize_diagonal(diag):
     """Per contact: s = tr(W_ii)/3, W_ii / s and its inverse as symmetric 6-vectors
@@ -63,18 +74,8 @@ def normalize_diagonal(diag):
     for i in range(m):
         si, a, ai, oki = normalize_block(diag[i])
         s[i] = si
-        An[i, 0] = a[0]
-        An[i, 1] = 0.5 * (a[1] + a[3])
-        An[i, 2] = 0.5 * (a[2] + a[6])
-        An[i, 3] = a[4]
-        An[i, 4] = 0.5 * (a[5] + a[7])
-        An[i, 5] = a[8]
-        Ainv[i, 0] = ai[0]
-        Ainv[i, 1] = 0.5 * (ai[1] + ai[3])
-        Ainv[i, 2] = 0.5 * (ai[2] + ai[6])
-        Ainv[i, 3] = ai[4]
-        Ainv[i, 4] = 0.5 * (ai[5] + ai[7])
-        Ainv[i, 5] = ai[8]
+        _pack_sym6(a, An[i])
+        _pack_sym6(ai, Ainv[i])
         ok[i] = oki
     return s, An, Ainv, ok
 
