@@ -14,6 +14,8 @@ fail); memory per worker is each worker's peak RSS (``worker_peak_rss_mib`` in t
 
     python bench/bench_batch.py [--styles 40] [--workers 2] [--repeat 2] [--shell-loop] [--name batch]
     (--styles 0: all 343)
+    python bench/bench_batch.py --example-grooms 12 [--example-strands 40] --name batch.examples
+    (grooms whose inversion takes seconds, where Dask's fixed costs are small)
 
 Prints a table and writes bench/results/<name>.md and <name>.json.  The machine's load average is
 recorded before and after: on a shared machine the speed-up is a lower bound.
@@ -45,7 +47,7 @@ from pathlib import Path
 from groomtool.batch import invert_one
 from groomtool.api import inversion_params
 paths, out, head = json.loads(sys.argv[1]), sys.argv[2], sys.argv[3]
-params = inversion_params(contacts="all")
+params = inversion_params(**json.loads(sys.argv[4]))
 rows = [invert_one(p, out, head, params, {"units": "m"}) for p in paths]
 json.dump({"rows": rows, "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024},
           open(Path(out) / "serial.json", "w"), default=str)
@@ -95,10 +97,10 @@ def compare(serial_rows, batch_dir: Path, serial_dir: Path) -> dict:
     return out
 
 
-def run_serial(paths, head, out: Path) -> dict:
+def run_serial(paths, head, out: Path, params: dict) -> dict:
     out.mkdir(parents=True)
-    wall, cpu, proc = timed([PYTHON, "-c", SERIAL, json.dumps([str(p) for p in paths]), str(out), head],
-                            env=one_thread_env())
+    wall, cpu, proc = timed([PYTHON, "-c", SERIAL, json.dumps([str(p) for p in paths]), str(out), head,
+                             json.dumps(params)], env=one_thread_env())
     if proc.returncode:
         raise RuntimeError(proc.stderr[-3000:])
     serial = json.loads((out / "serial.json").read_text())
@@ -108,9 +110,10 @@ def run_serial(paths, head, out: Path) -> dict:
             "counts": {s: statuses.count(s) for s in sorted(set(statuses))}, "rows": serial["rows"]}
 
 
-def run_batch_cli(paths, head, out: Path, workers: int) -> dict:
-    wall, cpu, proc = timed([GROOM, "batch", *map(str, paths), "--head", head, "--contacts", "all", "-o", str(out),
-                             "--workers", str(workers), "--no-resume", "-q"])
+def run_batch_cli(paths, head, out: Path, workers: int, params: dict) -> dict:
+    extra = ["--contact-radius", str(params["contact_radius"])] if "contact_radius" in params else []
+    wall, cpu, proc = timed([GROOM, "batch", *map(str, paths), "--head", head, "--contacts", "all", *extra, "-o",
+                             str(out), "--workers", str(workers), "--no-resume", "-q"])
     if proc.returncode not in (0, 1, 2):
         raise RuntimeError(proc.stderr[-3000:])
     summary = json.loads((out / "batch_summary.json").read_text())
@@ -132,21 +135,45 @@ def main() -> int:
     ap.add_argument("--repeat", type=int, default=2, help="serial and batch runs, alternated (default 2)")
     ap.add_argument("--shell-loop", action="store_true", help="also time one `groom invert` process per style")
     ap.add_argument("--name", default="batch", help="results file stem under bench/results (default batch)")
+    ap.add_argument("--example-grooms", type=int, default=0, metavar="N",
+                    help="instead of USC styles: N grooms of the bundled example (example_groom, seeds 0..N-1, "
+                         "--example-strands strands each, contact radius 0.5 mm as in the README): tasks of seconds")
+    ap.add_argument("--example-strands", type=int, default=40)
     args = ap.parse_args()
-    if not (DATA / "head_model.obj").is_file():
-        print(f"no USC data at {DATA}", file=sys.stderr)
-        return 1
-    paths = styles(args.styles)
-    head = str(DATA / "head_model.obj")
-    result = {"date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "machine": platform.machine(),
-              "cpus": os.cpu_count(), "python": platform.python_version(), "styles": len(paths),
-              "workers": args.workers, "load_average": [os.getloadavg()[0]], "serial": [], "batch": []}
-    print(f"{len(paths)} USC styles, --contacts all; load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs")
     with tempfile.TemporaryDirectory(prefix="bench_batch_") as tmp:
         tmp = Path(tmp)
+        if args.example_grooms:
+            from groomtool.examples import example_groom
+            from groomtool.io import save_groom
+
+            (tmp / "inputs").mkdir()
+            paths = []
+            for seed in range(args.example_grooms):
+                groom, mesh = example_groom(n_strands=args.example_strands, seed=seed)
+                paths.append(tmp / "inputs" / f"example{seed:02d}.obj")
+                save_groom(groom, paths[-1])
+            mesh.export(tmp / "inputs" / "head.obj")
+            head = str(tmp / "inputs" / "head.obj")
+            params = {"contacts": "all", "contact_radius": 5e-4}
+            what = (f"{len(paths)} grooms of the bundled example (`example_groom(n_strands={args.example_strands}, "
+                    f"seed=k)`, k < {len(paths)}), `--contacts all --contact-radius 5e-4` against the example's head")
+        else:
+            if not (DATA / "head_model.obj").is_file():
+                print(f"no USC data at {DATA}", file=sys.stderr)
+                return 1
+            paths = styles(args.styles)
+            head = str(DATA / "head_model.obj")
+            params = {"contacts": "all"}
+            what = (f"{len(paths)} USC-HairSalon styles "
+                    f"{'(all)' if len(paths) == 343 else '(spread evenly over the 343)'}, `--contacts all` against "
+                    "head_model.obj")
+        result = {"date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "machine": platform.machine(),
+                  "cpus": os.cpu_count(), "python": platform.python_version(), "styles": len(paths), "what": what,
+                  "workers": args.workers, "load_average": [os.getloadavg()[0]], "serial": [], "batch": []}
+        print(f"{what}; load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs")
         for k in range(args.repeat):
-            s = run_serial(paths, head, tmp / f"serial{k}")
-            b = run_batch_cli(paths, head, tmp / f"batch{k}", args.workers)
+            s = run_serial(paths, head, tmp / f"serial{k}", params)
+            b = run_batch_cli(paths, head, tmp / f"batch{k}", args.workers, params)
             if k == 0:
                 result["agreement"] = compare(s["rows"], tmp / "batch0", tmp / "serial0")
             del s["rows"]
@@ -160,7 +187,8 @@ def main() -> int:
             t = time.perf_counter()
             failed = 0
             for p in paths:
-                proc = subprocess.run([GROOM, "invert", str(p), "--head", head, "--contacts", "all", "-o",
+                extra = ["--contact-radius", str(params["contact_radius"])] if "contact_radius" in params else []
+                proc = subprocess.run([GROOM, "invert", str(p), "--head", head, "--contacts", "all", *extra, "-o",
                                        str(tmp / "shell" / p.stem), "-q"], capture_output=True, text=True)
                 failed += proc.returncode != 0
             result["shell_loop"] = {"wall_s": time.perf_counter() - t, "failed": failed}
@@ -179,9 +207,9 @@ def markdown(r: dict) -> str:
     lines = [
         "# groom batch: benchmark",
         "",
-        f"{r['date']} on {r['machine']} ({r['cpus']} CPUs), Python {r['python']}; {r['styles']} USC-HairSalon styles "
-        f"{'(all)' if r['styles'] == 343 else '(spread evenly over the 343)'}, `--contacts all` against head_model.obj, "
-        "default material and tolerances. The machine is shared with other jobs: 1-minute load average "
+        f"{r['date']} on {r['machine']} ({r['cpus']} CPUs), Python {r['python']}; "
+        + r.get("what", f"{r['styles']} USC-HairSalon styles, `--contacts all` against head_model.obj")
+        + ", default material and tolerances. The machine is shared with other jobs: 1-minute load average "
         + " / ".join(f"{x:.1f}" for x in r["load_average"]) + " (before, after each pair of runs), so the "
         "wall times depend on what the others left of the 2 cores; CPU times do not.",
         "",
