@@ -117,7 +117,7 @@ def test_key_toggles(can_render, outdir):
     plotter = viewer.build_plotter(outdir, off_screen=True, size=(200, 150))
     try:
         a = plotter.actors
-        viewer._add_toggles(plotter, {k: a[k] for k in ("groomed", "rest", "head")},
+        viewer.add_toggles(plotter, {k: a[k] for k in ("groomed", "rest", "head")},
                             [a["contact_points"], a["contact_forces"]])
         keys = plotter.iren._key_press_event_callbacks
         keys["t"][0]()

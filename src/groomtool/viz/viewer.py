@@ -131,7 +131,7 @@ def build_plotter(source, color: str = "curvature-change", rest: bool = False, h
     centre = head_poly.center if head_poly is not None else samples.points.mean(axis=0)
     _camera(plotter, np.concatenate(all_points), np.asarray(centre), shown.mean(axis=0), up_axis(arrays))
     if not off_screen:
-        _add_toggles(plotter, actors, contact_actors, fs(12))
+        add_toggles(plotter, actors, contact_actors, fs(12))
     return plotter
 
 
@@ -201,7 +201,7 @@ def _shape_label(plotter, rest: bool, font_size: int = 12) -> None:
                      color="black", name="shape_label")
 
 
-def _add_toggles(plotter, actors: dict, contact_actors: list, label_size: int = 12) -> None:
+def add_toggles(plotter, actors: dict, contact_actors: list, label_size: int = 12) -> None:
     """Check boxes (bottom left) and keys: t rest/groomed, c contacts, h head (VTK keeps r, s, w, ...)."""
     state = {"rest": bool(actors["rest"].GetVisibility()), "contacts": True}
 
