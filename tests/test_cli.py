@@ -142,3 +142,12 @@ def test_info_prints_counts(example, capsys):
     assert main(["info", str(groom_path)]) == EXIT_OK
     out = capsys.readouterr().out
     assert "strands   12" in out and "bounds" in out
+
+
+def test_example_writes_the_groom_and_head_and_is_quiet_with_q(tmp_path, capsys):
+    assert main(["example", str(tmp_path / "ex"), "--strands", "3"]) == 0
+    assert "wrote" in capsys.readouterr().out
+    assert (tmp_path / "ex" / "example.obj").is_file() and (tmp_path / "ex" / "head.obj").is_file()
+    assert main(["example", str(tmp_path / "ex2"), "--strands", "3", "-q"]) == 0
+    assert capsys.readouterr().out == ""
+    assert (tmp_path / "ex2" / "example.obj").is_file()

@@ -121,6 +121,7 @@ def build_parser() -> argparse.ArgumentParser:
                         formatter_class=argparse.RawDescriptionHelpFormatter)
     ex.add_argument("directory", nargs="?", default="example", help="where to write them (default ./example)")
     ex.add_argument("--strands", type=int, default=200, help="number of strands (default 200)")
+    ex.add_argument("-q", "--quiet", action="store_true", help="no 'wrote ...' line")
 
     info = sub.add_parser("info", help="print counts, lengths, bounding box, root centroid, the direction strands "
                                        "go and, with --head, how far the roots are from the head",
@@ -367,7 +368,8 @@ def cmd_example(args) -> int:
     from ..examples import write_example
 
     paths = write_example(args.directory, n_strands=args.strands)
-    print("wrote " + ", ".join(str(p) for p in paths))
+    if not args.quiet:
+        print("wrote " + ", ".join(str(p) for p in paths))
     return EXIT_OK
 
 
