@@ -249,11 +249,15 @@ def build_inverse_problem(helix, F, H, material: Material, gravity, guess: str, 
 
 
 def clothoid_inverse_square_blocks(clothoid: cl.SuperClothoid, material: Material, stiffness_factor=None,
-                                   chunk: int = 256) -> list:
-    """Per strand the dense K^-2 over its real dofs (3 (N_s + 1) square, node-major like the flat dofs)."""
+                                   chunk: int = 256, strands=None) -> list:
+    """Per strand the dense K^-2 over its real dofs (3 (N_s + 1) square, node-major like the flat dofs); only for
+    ``strands`` when given (the others get a unit diagonal: for strands no contact touches, H has no entry in their
+    columns and D does not enter W = H D H^T)."""
     f = _factor(stiffness_factor, clothoid.n_strands)
-    out = [None] * clothoid.n_strands
+    out = [np.ones(3 * (int(n) + 1)) for n in clothoid.n_elements]
     order = np.argsort(clothoid.n_elements, kind="stable")
+    if strands is not None:
+        order = order[np.isin(order, strands)]
     for start in range(0, clothoid.n_strands, chunk):
         ids = order[start:start + chunk]
         sub = clothoid.subset(ids)
@@ -282,7 +286,10 @@ def _build_clothoid_problem(rod: cl.SuperClothoid, F, H, material: Material, gra
     q = rod.to_flat(rod.curvatures).ravel()
     d = q - inv_apply(rod.to_flat(F).ravel()) - rod.to_flat(q0_guess).ravel()
     H = sp.csr_matrix(H)
-    blocks = clothoid_inverse_square_blocks(rod, material, stiffness_factor)
+    # dense K^-2 only where a contact touches the strand (harolongo's head contacts: a few thousand of 7,905 strands)
+    col_strand = np.repeat(np.arange(rod.n_strands), 3 * (rod.n_elements + 1))
+    touched = np.unique(col_strand[H.indices]) if H.nnz else np.zeros(0, np.int64)
+    blocks = clothoid_inverse_square_blocks(rod, material, stiffness_factor, strands=touched)
     m = H.shape[0] // 3
     diag = np.zeros(0)
     if m:
