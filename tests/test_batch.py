@@ -60,6 +60,13 @@ def assert_nothing_half_written(out: Path):
     assert not [p for p in out.rglob(".*") if p.is_file()], "temporary files left behind"
 
 
+def allowed_failures(client, n):
+    """Dask's retry budget (allowed-failures) on the shared cluster's scheduler."""
+    def set_it(dask_scheduler):
+        dask_scheduler.allowed_failures = n
+    client.run_on_scheduler(set_it)
+
+
 def read_csv(out: Path) -> dict:
     with open(out / "batch_summary.csv", newline="") as f:
         return {r["name"]: r for r in csv.DictReader(f)}
@@ -291,11 +298,6 @@ def test_a_task_group_whose_worker_dies_is_rerun_groom_by_groom(client, data, tm
                     f.write(f"{key}\n")
                 os._exit(1)
 
-    def allowed_failures(n):
-        def set_it(dask_scheduler):
-            dask_scheduler.allowed_failures = n
-        client.run_on_scheduler(set_it)
-
     many = tmp_path / "many"
     many.mkdir()
     names = [f"m{k}" for k in range(4)]
@@ -305,12 +307,12 @@ def test_a_task_group_whose_worker_dies_is_rerun_groom_by_groom(client, data, tm
     out = tmp_path / "out"
     marker = tmp_path / "killed"
     client.register_plugin(KillGroups(str(marker)), name="kill-groups")
-    allowed_failures(0)
+    allowed_failures(client, 0)
     try:
         summary = batch.run_batch([many / f"{n}.obj" for n in names], out, head=data / "head.obj", params=PARAMS,
                                   client=client, quiet=True)
     finally:
-        allowed_failures(3)
+        allowed_failures(client, 3)
         client.unregister_worker_plugin("kill-groups")
     assert marker.read_text().startswith("invert-m0+3-"), "the group task was not killed: the test proves nothing"
     assert [r["name"] for r in summary.rows] == names
@@ -328,19 +330,14 @@ def test_a_worker_that_always_dies_is_reported_after_the_retries(client, data, t
             if finish == "executing" and "invert-g2-" in str(key):
                 os._exit(1)
 
-    def allowed_failures(n):
-        def set_it(dask_scheduler):
-            dask_scheduler.allowed_failures = n
-        client.run_on_scheduler(set_it)
-
     out = tmp_path / "out"
     client.register_plugin(KillAlways(), name="kill-always")
-    allowed_failures(1)
+    allowed_failures(client, 1)
     try:
         summary = batch.run_batch(inputs(data, ["g2"]), out, head=data / "head.obj", params=PARAMS, client=client,
                                   quiet=True)
     finally:
-        allowed_failures(3)
+        allowed_failures(client, 3)
         client.unregister_worker_plugin("kill-always")
     (row,) = summary.rows
     assert row["status"] == "worker_lost" and "KilledWorker" in row["error"], row
