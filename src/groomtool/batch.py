@@ -32,6 +32,7 @@ rest_shape.obj, fitted.obj, report.json).
 from __future__ import annotations
 
 import csv
+import importlib.util
 import io as _io
 import json
 import os
@@ -184,12 +185,19 @@ def is_complete(out: Path) -> bool:
     return (Path(out) / COMPLETE_MARKER).is_file()
 
 
+def _extra_formats() -> tuple[str, ...]:
+    """The formats written by the exporters (io/export.py) beside the default set: usd, abc, vtp, hair."""
+    from .io.export import FORMATS
+
+    return tuple(f for f in FORMATS if f not in DEFAULT_FORMATS)
+
+
 def _write(result, target: Path, formats) -> None:
     """The output set, written by the project's writer as one atomic set (io/outset.py): the target
     directory is the old complete set or the new one, never a mix, even if the worker is killed."""
     from .io.results import write_result
 
-    extra = [f for f in formats if f in ("usd", "vtp", "hair")]
+    extra = [f for f in formats if f in _extra_formats()]
     if extra:
         from .io.export import export_formats
 
@@ -423,7 +431,7 @@ def run_batch(inputs, outdir, head=None, params=None, *, units="m", scale: float
     head: head mesh path (read once per worker) or None; params: ``InversionParams`` or a dict for
     ``groomtool.api.inversion_params`` (e.g. ``{"contacts": "all"}``, lengths in metres);
     units/scale/up/repair/strand_length: how to read the inputs and the head (as ``groom invert``);
-    formats: npz/obj/json/usd/vtp/hair (json is always written: report.json marks a complete set).
+    formats: npz/obj/json/usd/abc/vtp/hair (json is always written: report.json marks a complete set).
     Where: ``client`` (a ``distributed.Client``), else ``scheduler`` (an address), else a LocalCluster
     of ``workers`` processes, one thread each, ``memory_limit`` each ("auto": the machine's memory
     shared out; "4GiB"; 0 for none) and ``retries`` reruns of a task whose worker died.
@@ -444,9 +452,13 @@ def run_batch(inputs, outdir, head=None, params=None, *, units="m", scale: float
         if not head.is_file():
             raise GroomError(f"{head}: no such head mesh")
     formats = tuple(dict.fromkeys(tuple(formats) + ("json",)))
-    unknown = sorted(set(formats) - set(DEFAULT_FORMATS) - {"usd", "vtp", "hair"})
+    unknown = sorted(set(formats) - set(DEFAULT_FORMATS) - set(_extra_formats()))
     if unknown:
         raise GroomError(f"unknown output format(s) {', '.join(unknown)}")
+    if "abc" in formats and importlib.util.find_spec("alembic3d") is None:  # once here, not once per groom
+        from .io.alembic import INSTALL
+
+        raise GroomError(f"--format abc needs the optional alembic3d package: {INSTALL}")
 
     outdir = resolve_target(outdir)  # the batch's root, holding one output set per groom
     if outdir.exists() and not outdir.is_dir():
