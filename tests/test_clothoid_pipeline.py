@@ -222,3 +222,48 @@ def test_python_api(example, tmp_path):
         groomtool.export(tmp_path / "r", tmp_path / "r.vtp")
     with pytest.raises(ValueError, match="model"):
         groomtool.invert(groom, model="helix")
+
+
+def test_clothoid_stiffness_ratio_against_a_generalized_eigenproblem(example):
+    """rho = lambda_max(K^-1 dF/dq) of the stability analysis against scipy's generalized eigvalsh with dF/dq by
+    central differences of the gravity force and K from its formula."""
+    import scipy.linalg
+
+    from groomtool.material import Material
+    from groomtool.stability import stiffness_ratios
+
+    groom_path, _ = example
+    fit = fit_clothoid_groom(_subset(load_groom(groom_path), [0, 4, 9]))
+    rod = fit.helix
+    mat = Material()
+    g = np.array([0.0, -9.81, 0.0])
+    rho = stiffness_ratios(rod, mat.stiffness_diag, mat.linear_density, g)
+    for s in range(rod.n_strands):
+        n = int(rod.n_elements[s])
+        sub = rod.subset([s])
+        dofs = 3 * (n + 1)
+        dF = np.zeros((dofs, dofs))
+        for k in range(dofs):
+            h = 1e-4 * max(1.0, abs(sub.curvatures.reshape(-1)[k]))
+            plus, minus = sub.curvatures.copy(), sub.curvatures.copy()
+            plus.reshape(-1)[k] += h
+            minus.reshape(-1)[k] -= h
+            dF[:, k] = (cl.gravity_force(sub.with_curvatures(plus), mat.linear_density, g)
+                        - cl.gravity_force(sub.with_curvatures(minus), mat.linear_density, g)).reshape(-1) / (2 * h)
+        K = _dense_stiffness(rod.lengths[s, :n], mat.stiffness_diag)
+        ref = scipy.linalg.eigh(0.5 * (dF + dF.T), K, eigvals_only=True)[-1]
+        assert rho[s] == pytest.approx(ref, rel=1e-6)
+
+
+def test_read_result_checks_the_clothoid_nodes(example, tmp_path):
+    groom_path, _ = example
+    result = invert_groom(_subset(load_groom(groom_path), [2]), None, InversionParams(model="clothoid"))
+    result.save(tmp_path / "r", formats=("npz",))
+    with np.load(tmp_path / "r" / "rest.npz") as z:
+        arrays = {k: z[k] for k in z.files}
+    np.testing.assert_array_equal(read_result(arrays).clothoid(rest=True).curvatures, result.rest_curvatures)
+    arrays["clothoid_node_offsets"] = arrays["clothoid_node_offsets"] - 1
+    from groomtool.groom import GroomError
+
+    with pytest.raises(GroomError, match="clothoid_node_offsets"):
+        read_result(arrays).clothoid()
