@@ -151,3 +151,15 @@ def test_example_writes_the_groom_and_head_and_is_quiet_with_q(tmp_path, capsys)
     assert main(["example", str(tmp_path / "ex2"), "--strands", "3", "-q"]) == 0
     assert capsys.readouterr().out == ""
     assert (tmp_path / "ex2" / "example.obj").is_file()
+
+
+def test_rest_shape_obj_is_sampled_as_documented(example, tmp_path):
+    """docs/outputs.md: rest_shape.obj (and fitted.obj) sample the helices 8 times per element, as
+    groom export --format obj does."""
+    out = tmp_path / "out"
+    assert main(["invert", str(example[0]), "-o", str(out), "-q"]) == 0
+    with np.load(out / "rest.npz") as z:
+        strands, elements = len(z["strand_offsets"]) - 1, len(z["element_lengths"])
+    for name in ("rest_shape.obj", "fitted.obj"):
+        vertices = sum(1 for line in (out / name).read_text().splitlines() if line.startswith("v "))
+        assert vertices == 8 * elements + strands, name

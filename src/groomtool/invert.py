@@ -166,12 +166,12 @@ class InversionResult:
         """The strands with their rest curvatures: the shape they take with no gravity, no contact."""
         return self.helix.with_curvatures(self.rest_curvatures)
 
-    def rest_shape(self, per_element: int = 4):
+    def rest_shape(self, per_element: int = 8):
         """(points, offsets) of the rest shape sampled ``per_element`` times per element."""
         pts, offsets, _, _ = rod_module(self.helix).sample(self.rest_helix(), per_element)
         return pts, offsets
 
-    def fitted_shape(self, per_element: int = 4):
+    def fitted_shape(self, per_element: int = 8):
         pts, offsets, _, _ = rod_module(self.helix).sample(self.helix, per_element)
         return pts, offsets
 
