@@ -267,7 +267,7 @@ def invert_groom(groom: Groom, head=None, params: InversionParams | None = None,
     # stable inversion (stabilize.py): solve, find the strands unstable with the contacts that hold them,
     # stiffen exactly those, solve again with the new K
     with timer.stage("stability"):
-        ratio = stiffness_ratiosprogress(helix, material, gravity, quiet)
+        ratio = _isolated_ratios_with_progress(helix, material, gravity, quiet)
     factor = np.ones(helix.n_strands)
     if params.stiffness_factor is not None:
         given = np.asarray(params.stiffness_factor, dtype=np.float64).reshape(-1)
@@ -440,7 +440,8 @@ def held_stability(helix, material: Material, gravity, contacts, forces, H, mu, 
                                      forces, H, mu, isolated_ratios=isolated_ratios, progress=bar)
 
 
-def stiffness_ratiosprogress(helix, material, gravity, quiet):
+def _isolated_ratios_with_progress(helix, material, gravity, quiet):
+    """The isolated-strand stiffness ratios (stability.stiffness_ratios) under a 'stability' bar."""
     with progress(helix.n_strands, "stability", quiet) as bar:
         return stiffness_ratios(helix, material.stiffness_diag, material.linear_density, gravity, progress=bar)
 
