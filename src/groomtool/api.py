@@ -21,6 +21,7 @@ import numpy as np
 from .groom import Groom
 from .invert import InversionParams, InversionResult, invert_groom
 from .material import Material
+from .rods import clothoid as cl
 from .rods import superhelix as sh
 
 MATERIAL_FIELDS = tuple(f.name for f in dataclasses.fields(Material))
@@ -100,11 +101,6 @@ def simulate(result, seconds: float = 1.0, **options):
     from .simulate import simulate as _simulate
 
     if isinstance(result, InversionResult):
-        if result.model != "superhelix":
-            from .io.results import ModelError
-
-            raise ModelError("simulate takes Super-Helix results only so far: this is a Super Space Clothoid result "
-                             "(model='clothoid'; docs/clothoid.md, 'Not done')")
         helix, rest, material, gravity, head = (result.helix, result.rest_curvatures, result.material,
                                                 result.gravity, result.head)
         factor = result.stiffness_factor
@@ -112,7 +108,10 @@ def simulate(result, seconds: float = 1.0, **options):
         helix, rest, material, gravity, head, factor = _simulation_inputs(result)
     options.setdefault("head", head)
     if factor is not None and np.any(np.asarray(factor) != 1.0):  # stiffened strands (docs/stability.md)
-        K = sh.stiffness(helix, material.stiffness_diag) * np.asarray(factor)[:, None, None]
+        if isinstance(helix, sh.SuperHelix):
+            K = sh.stiffness(helix, material.stiffness_diag) * np.asarray(factor)[:, None, None]
+        else:  # a Super Space Clothoid: K banded (diagonal, off-diagonal blocks)
+            K = tuple(x * np.asarray(factor)[:, None, None] for x in cl.stiffness(helix, material.stiffness_diag))
         options.setdefault("stiffness", K)
     return _simulate(helix, rest, material, gravity, seconds=seconds, **options)
 
@@ -123,4 +122,4 @@ def _simulation_inputs(source):
     from .io.results import read_result
 
     saved = read_result(source)
-    return saved.helix(), saved.rest_curvatures, saved.material, saved.gravity, saved.head(), saved.stiffness_factor
+    return saved.rod(), saved.rest_curvatures, saved.material, saved.gravity, saved.head(), saved.stiffness_factor

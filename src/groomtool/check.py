@@ -3,7 +3,9 @@
 * inverted: rest curvatures q0 from the inversion (rest.npz);
 * naive:    q0 = q, the groomed shape taken as the rest shape (what one gets without inversion).
 
-Both start at rest from the fitted Super-Helices, with the same material, gravity, head and contact
+Both start at rest from the fitted rods (Super-Helices, or Super Space Clothoids for a ``--model clothoid``
+result: nodal curvatures, their velocity terms A(q, qd) dropped, which is exact at rest), with the same
+material, gravity, head and contact
 mode as the inversion (report.json) unless overridden.  Measured after ``seconds`` of simulated time:
 
     tip drift (per strand)   |x_tip(T) - x_tip(0)|                         (m)
@@ -36,6 +38,7 @@ import numpy as np
 
 from .io.results import read_result
 from .material import Material
+from .rods import clothoid as cl
 from .rods import superhelix as sh
 from .simulate import SimulationParams, simulate
 
@@ -44,7 +47,7 @@ from .simulate import SimulationParams, simulate
 class InvertedGroom:
     """What a simulation needs from an output directory of ``groom invert``."""
 
-    helix: sh.SuperHelix
+    helix: sh.SuperHelix  # or cl.SuperClothoid (rest.npz model "clothoid": nodal curvatures (S, N + 1, 3))
     rest_curvatures: np.ndarray
     material: Material
     gravity: np.ndarray
@@ -66,18 +69,27 @@ class InvertedGroom:
         scalar = np.asarray(self.material.stiffness_diag)[None, :]
         return not np.allclose(self.strand_stiffness, scalar, rtol=1e-12, atol=0.0)
 
+    @property
+    def model(self) -> str:
+        """"clothoid" or "superhelix"."""
+        return "clothoid" if isinstance(self.helix, cl.SuperClothoid) else "superhelix"
+
     def stiffness(self) -> np.ndarray | None:
-        """K (S, N, 3) = l_j (GJ_s, EI_s, EI_s) of the per-strand materials, None without them."""
+        """K (S, N, 3) = l_j (GJ_s, EI_s, EI_s) of the per-strand materials, None without them (clothoid: the banded
+        (diagonal (S, N + 1, 3), off-diagonal (S, N, 3)) blocks of cl.stiffness with D_s = (GJ_s, EI_s, EI_s))."""
         if self.strand_stiffness is None:
             return None
+        if isinstance(self.helix, cl.SuperClothoid):
+            diag, off = cl.stiffness(self.helix, np.ones(3))
+            return diag * self.strand_stiffness[:, None, :], off * self.strand_stiffness[:, None, :]
         return self.helix.lengths[..., None] * self.strand_stiffness[:, None, :]
 
     def subset(self, strands) -> "InvertedGroom":
         """The same inversion restricted to ``strands`` (indices, in that order); contacts between them kept."""
         idx = np.asarray(strands, dtype=np.int64)
         h = self.helix
-        helix = sh.SuperHelix(h.root_positions[idx], h.root_frames[idx], h.lengths[idx], h.curvatures[idx],
-                              h.n_elements[idx])
+        rod = cl.SuperClothoid if isinstance(h, cl.SuperClothoid) else sh.SuperHelix
+        helix = rod(h.root_positions[idx], h.root_frames[idx], h.lengths[idx], h.curvatures[idx], h.n_elements[idx])
         forces = None
         if self.contact_forces is not None:
             record, f = self.contact_forces
@@ -113,9 +125,9 @@ class InvertedGroom:
 
 
 def load_inverted(outdir) -> InvertedGroom:
-    """Read rest.npz (and report.json when present) of an inversion output directory."""
+    """Read rest.npz (and report.json when present) of an inversion output directory (either rod model)."""
     saved = read_result(outdir)
-    helix = saved.helix()
+    helix = saved.rod()
     material = saved.material
     strand_stiffness, factor = saved.per_strand_stiffness(material)
     return InvertedGroom(helix=helix, rest_curvatures=saved.rest_curvatures, material=material, gravity=saved.gravity,
@@ -132,9 +144,11 @@ def tip_drifts(tips: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def curvature_profile_change(before: sh.SuperHelix, after_curvatures: np.ndarray) -> np.ndarray:
-    """Per strand max_j | |kappa_j(T)| - |kappa_j(0)| | / max_j |kappa_j(0)| (bending curvature only)."""
-    k0 = np.linalg.norm(before.curvatures[..., 1:], axis=-1) * before.element_mask
-    k1 = np.linalg.norm(np.asarray(after_curvatures)[..., 1:], axis=-1) * before.element_mask
+    """Per strand max_j | |kappa_j(T)| - |kappa_j(0)| | / max_j |kappa_j(0)| (bending curvature only; j the elements
+    of a Super-Helix, the nodes of a Super Space Clothoid)."""
+    mask = before.node_mask if isinstance(before, cl.SuperClothoid) else before.element_mask
+    k0 = np.linalg.norm(before.curvatures[..., 1:], axis=-1) * mask
+    k1 = np.linalg.norm(np.asarray(after_curvatures)[..., 1:], axis=-1) * mask
     scale = np.max(k0, axis=1)
     change = np.max(np.abs(k1 - k0), axis=1)
     return np.divide(change, scale, out=np.zeros_like(change), where=scale > 0)
@@ -195,7 +209,7 @@ def choose_strands(inv: InvertedGroom, n: int, seed: int = 0, radius: float | No
     elif contacts == "all":
         from .contact import DEFAULT_CONTACT_RADIUS, detect_strand_contacts
 
-        pts, offsets, _, arc = sh.sample(inv.helix, 8)
+        pts, offsets, _, arc = (cl if isinstance(inv.helix, cl.SuperClothoid) else sh).sample(inv.helix, 8)
         found = detect_strand_contacts(pts, offsets, arc, DEFAULT_CONTACT_RADIUS if radius is None else radius)
         a, b = found.strand_a, found.strand_b
     else:
@@ -236,7 +250,11 @@ def check_groom(outdir, seconds: float = 1.0, dt: float | None = None, contacts:
               "seconds": float(seconds), "dt": float(dt), "steps": steps, "contacts": mode,
               "contact_radius_m": base.contact_radius, "head": inv.head is not None,
               "unstable_in_isolation": None if inv.stiffness_ratio is None else int(np.sum(inv.stiffness_ratio >= 1.0)),
-              "per_strand_materials": inv.per_strand()}
+              "per_strand_materials": inv.per_strand(), "model": inv.model}
+    if inv.model == "clothoid":
+        report["velocity_terms"] = ("dropped: A(q, qd) is not computed for Super Space Clothoids (zero at rest, so "
+                                    "the inverted run is exact; the naive run's sag omits the Coriolis and "
+                                    "centrifugal terms)")
     if chosen is not None:
         report["subset"] = {"groom_strands": total_strands, "checked": int(len(chosen)), "seed": int(seed),
                             "simulated_with_partners": int(inv.helix.n_strands),
@@ -283,10 +301,13 @@ def summary(report: dict) -> str:
     sub = report.get("subset")
     what = (f"{sub['checked']} of {sub['groom_strands']} strands (seed {sub['seed']}; simulated with their contact "
             f"partners: {sub['simulated_with_partners']})" if sub else f"{report['strands']} strands")
-    lines = [f"groom check: {what}, {report['seconds']:g} s simulated at "
+    model = " (Super Space Clothoids)" if report.get("model") == "clothoid" else ""
+    lines = [f"groom check: {what}{model}, {report['seconds']:g} s simulated at "
              f"dt = {report['dt']:.4g} s ({report['steps']} steps), contacts {report['contacts']}",
              run("inverted", inv), run("naive", nai),
              f"  ratio     inverted / naive max drift = {report['drift_ratio']:.2e}"]
+    if report.get("velocity_terms"):
+        lines.append("  model     clothoid velocity terms A(q, qd) dropped (exact at rest; the naive sag omits them)")
     if report.get("per_strand_materials"):
         lines.append("  material  inverted run with the per-strand stiffness of rest.npz; naive run with the scalar material")
     lines.append("  contact   " + "; ".join(_solver_line(name, report[name]["solver"]) for name in ("inverted", "naive")))

@@ -47,6 +47,7 @@ import scipy.sparse as sp
 from threadpoolctl import threadpool_limits
 
 from .material import Material
+from .rods import clothoid as cl
 from .rods import dynamics as dyn
 from .rods import superhelix as sh
 from .simulate_contacts import (ContactTracker, contact_gaps, match_contacts,  # noqa: F401 (re-exported)
@@ -185,6 +186,10 @@ class Simulator:
                  params: SimulationParams | None = None, head_motion: Callable | None = None,
                  initial_rates=None, stiffness=None, warm_start=None, external_force=None):
         self.params = params or SimulationParams()
+        self.clothoid = isinstance(helix, cl.SuperClothoid)  # Super Space Clothoids: nodal dofs (module docstring)
+        if self.clothoid and head_motion is not None:
+            raise NotImplementedError("a moving head is not supported for Super Space Clothoids (their velocity "
+                                      "terms, which carry the root's inertial forces, are not computed)")
         self.material = material
         self.gravity = np.asarray(gravity, dtype=np.float64)
         self.head = head
@@ -194,13 +199,16 @@ class Simulator:
         self.lengths = helix.lengths
         self.n_elements = helix.n_elements
         self.inertia = dyn.Inertia.from_material(material, self.params.rotational_inertia_scale)
-        if stiffness is None:
+        if self.clothoid:  # K block tridiagonal, banded (diagonal blocks (S, N + 1, 3), off-diagonal (S, N, 3))
+            self.K = _clothoid_stiffness(helix, material, stiffness)
+        elif stiffness is None:
             self.K = sh.stiffness(helix, material.stiffness_diag)
         else:
             self.K = np.asarray(stiffness, dtype=np.float64)
             if self.K.shape != helix.curvatures.shape:
                 raise ValueError(f"stiffness must have shape {helix.curvatures.shape} (S, N, 3), got {self.K.shape}")
-        self.mask = helix.element_mask
+        self.mask = helix.node_mask if self.clothoid else helix.element_mask
+        self._dof_blocks = self.n_elements + 1 if self.clothoid else self.n_elements  # 3-dof blocks per strand
         self.external = None if external_force is None else np.asarray(external_force, dtype=np.float64).reshape(
             helix.curvatures.shape)
         rates = np.zeros_like(helix.curvatures) if initial_rates is None else np.asarray(initial_rates, float)
@@ -211,7 +219,7 @@ class Simulator:
         self.clamped_strands = 0  # strand-steps whose rates were scaled down (_limit_rotation)
         self._corrections = StepCorrections(helix.n_strands) if self.params.keep_step_corrections else None
         self._factors = None  # the step's Cholesky factors (StrandFactors), overwritten by the next step
-        self._chunks = strand_chunks(self.n_elements)
+        self._chunks = strand_chunks(self._dof_blocks)
         self._contacts_on = self.params.contacts == "all" or (self.params.contacts == "head" and head is not None)
         self._radius = self.params.contact_radius
         self.tracker: ContactTracker | None = None
@@ -225,18 +233,24 @@ class Simulator:
                 forces = np.asarray(warm_start[1], dtype=np.float64).reshape(-1, 3)
                 warm = (warm_start[0], forces * self.params.dt)
             surface = as_head_surface(head) if head is not None else None
-            self.tracker = ContactTracker(self.params, self._radius, surface, self.motion, self.lengths, self.mask,
-                                          warm_start=warm)
+            self.tracker = ContactTracker(self.params, self._radius, surface, self.motion, self.lengths,
+                                          helix.element_mask, warm_start=warm)
             t0 = time.perf_counter()
             self.tracker.detect_initial(self.helix())
             self._time("detect", t0)
 
     # ---------------------------------------------------------------- geometry
+    @property
+    def model(self):
+        """The rod model's module: rods.clothoid or rods.superhelix (sample, kinematics, gravity_potential)."""
+        return cl if self.clothoid else sh
+
     def helix(self, state: State | None = None) -> sh.SuperHelix:
         """The strands at ``state`` (default: the current one), roots where the head puts them."""
         state = state or self.state
         pose = self.motion.pose(state.time)
-        return sh.SuperHelix(pose.roots, pose.frames, self.lengths, state.curvatures, self.n_elements)
+        rod = cl.SuperClothoid if self.clothoid else sh.SuperHelix
+        return rod(pose.roots, pose.frames, self.lengths, state.curvatures, self.n_elements)
 
     def contact_radius(self) -> float | None:
         return self._radius
@@ -249,11 +263,17 @@ class Simulator:
 
     def assemble(self) -> StepSystem:
         """Dynamics, factorisation, free rates, contacts and the scaled contact problem of the next step."""
-        p = self.params
-        h = p.dt
         st = self.state
         t0 = time.perf_counter()
         pose = self.motion.pose(st.time)
+        dynamics = self._clothoid_dynamics if self.clothoid else self._helix_dynamics
+        helix, kin, v_free, t0 = dynamics(st, pose, t0)
+        return self._contact_system(StepSystem(helix=helix, kin=kin, factors=self._factors, v_free=v_free), pose, t0)
+
+    def _helix_dynamics(self, st: State, pose, t0: float):
+        """Super-Helices: M and A (compiled), F and the generators of dF/dq, the factorised Mhat and the free rates."""
+        p = self.params
+        h = p.dt
         helix = sh.SuperHelix(pose.roots, pose.frames, self.lengths, st.curvatures, self.n_elements)
         kin = sh.kinematics(helix)
         with_A = p.velocity_terms or pose.moving
@@ -267,7 +287,7 @@ class Simulator:
             force = force + self.external
         rhs = np.zeros((S, 3 * N))
         if self._factors is None:
-            self._factors = StrandFactors(self.n_elements)
+            self._factors = StrandFactors(self._dof_blocks)
         t0 = self._time("dynamics", t0)
         # per chunk of strands (M never holds a whole large groom): M and A, then
         # rhs = M v + h (F - K (q - q0) - A) and Mhat = (1 + h alpha) M + (h^2 + h beta) K - h^2 dF/dq factorised
@@ -288,11 +308,67 @@ class Simulator:
         rhs[~np.repeat(self.mask, 3, axis=1)] = 0.0
         v_free = self._factors.solve(rhs).reshape(S, N, 3)
         t0 = self._time("factor", t0)
-        system = StepSystem(helix=helix, kin=kin, factors=self._factors, v_free=v_free)
+        return helix, kin, v_free, t0
+
+    def _clothoid_dynamics(self, st: State, pose, t0: float):
+        """Super Space Clothoids (nodal dofs): M with the cross-section rotation (dyn.clothoid_mass_matrix), F and dF/dq
+        (complex step), the block-tridiagonal K as each strand's dense block, the factorised Mhat and the free rates.
+        The velocity terms A(q, qd) are not computed (dropped: exact at rest, docs/simulation.md)."""
+        p = self.params
+        h = p.dt
+        helix = cl.SuperClothoid(pose.roots, pose.frames, self.lengths, st.curvatures, self.n_elements)
+        kin = cl.kinematics(helix)
+        F = cl.gravity_force(helix, self.inertia.linear, self.gravity, kin)
+        S, N1 = st.curvatures.shape[:2]
+        alpha = p.mass_damping + p.air_drag / self.inertia.linear
+        force = F - self._stiffness_apply(st.curvatures - self.rest)
+        if self.external is not None:
+            force = force + self.external
+        rhs = np.zeros((S, 3 * N1))
+        if self._factors is None:
+            self._factors = StrandFactors(self._dof_blocks)
+        t0 = self._time("dynamics", t0)
+        for a, b in self._chunks:
+            sub, sub_kin = _clothoid_part(helix, kin, a, b)
+            M = dyn.clothoid_mass_matrix(sub, self.inertia, sub_kin, p.quadrature_order)
+            n = M.shape[1]
+            nodes = n // 3
+            rhs[a:b, :n] = (np.einsum("sij,sj->si", M, st.rates[a:b, :nodes].reshape(b - a, n))
+                            + h * force[a:b, :nodes].reshape(b - a, n))
+            dF = cl.gravity_force_jacobian(sub, self.inertia.linear, self.gravity, sub_kin) if p.implicit_gravity else M
+            K = _banded_dense(self.K[0][a:b, :nodes], self.K[1][a:b, :nodes - 1])
+            t0 = self._time("dynamics", t0)
+            # a = (1 + h alpha) M + (h^2 + h beta) K (K not diagonal: passed inside a), b = -h^2 dF/dq
+            _, modified = factor_step_matrix((1.0 + h * alpha) * M + (h * h + h * p.stiffness_damping) * K, dF,
+                                             self._dof_blocks[a:b], self._corrections,
+                                             b_scale=-h * h if p.implicit_gravity else 0.0, out=self._factors, first=a)
+            self.modified_strands += modified
+            t0 = self._time("factor", t0)
+        rhs[~np.repeat(self.mask, 3, axis=1)] = 0.0
+        v_free = self._factors.solve(rhs).reshape(S, N1, 3)
+        t0 = self._time("factor", t0)
+        return helix, kin, v_free, t0
+
+    def _stiffness_apply(self, d: np.ndarray) -> np.ndarray:
+        """K d: diagonal for the helix, the banded product for the clothoid."""
+        if not self.clothoid:
+            return self.K * d
+        diag, off = self.K
+        out = diag * d
+        out[:, :-1] += off * d[:, 1:]
+        out[:, 1:] += off * d[:, :-1]
+        return out
+
+    def _contact_system(self, system: StepSystem, pose, t0: float) -> StepSystem:
+        """Contacts (detected or kept), H and the scaled contact problem of the step (both models)."""
+        st = self.state
+        helix, kin = system.helix, system.kin
         if not self._contacts_on:
             return system
 
-        margins = self.tracker.margins(dyn.strand_node_speeds(helix, st.rates, kin))
+        speeds = (dyn.clothoid_node_speeds(helix, st.rates, kin) if self.clothoid
+                  else dyn.strand_node_speeds(helix, st.rates, kin))
+        margins = self.tracker.margins(speeds)
         contacts = self.tracker.contacts(helix, kin, st.time, margins)
         t0 = self._time("detect", t0)
         system.stats["contacts"] = len(contacts.strand_a)
@@ -396,6 +472,8 @@ class Simulator:
                                         max_iter=p.max_iterations, r0=r, scale=scale)
             r, iterations, status = np.asarray(res.r), int(res.iterations), str(res.status)
             err = error(r)
+        if self.clothoid:
+            r, err, status = _polish_sticking(problem, r, err, error, status)
         self._time("solve", t0)
         system.stats.update(solver_iterations=iterations, solver_residual=float(err),
                             solver_converged=bool(err <= p.solver_tolerance), solver_status=status)
@@ -423,7 +501,11 @@ class Simulator:
         bound = self.params.max_rotation_per_step
         if not bound:
             return v
-        turn = self.params.dt * np.linalg.norm(v, axis=-1) * self.lengths
+        if self.clothoid:  # an element turns with the rates of its two nodes
+            speed = np.linalg.norm(v, axis=-1)
+            turn = self.params.dt * np.maximum(speed[:, :-1], speed[:, 1:]) * self.lengths
+        else:
+            turn = self.params.dt * np.linalg.norm(v, axis=-1) * self.lengths
         worst = np.max(turn, axis=1)
         over = worst > bound
         if not np.any(over):
@@ -446,18 +528,19 @@ class Simulator:
     def tips(self, helix: sh.SuperHelix | None = None) -> np.ndarray:
         """Tip positions (S, 3)."""
         helix = helix or self.helix()
-        kin = sh.kinematics(helix)
+        kin = cl.kinematics(helix, moments=False) if self.clothoid else sh.kinematics(helix)
         return kin.C[np.arange(helix.n_strands), helix.n_elements]
 
     def energies(self) -> dict:
         """Kinetic 1/2 v^T M v, elastic 1/2 (q - q0)^T K (q - q0) and gravity -rhoS g . int C ds, summed (J)."""
         helix = self.helix()
-        kin = sh.kinematics(helix)
-        M = dyn.mass_matrix(helix, self.inertia, kin, self.params.quadrature_order)
+        kin = self.model.kinematics(helix)
+        mass = dyn.clothoid_mass_matrix if self.clothoid else dyn.mass_matrix
+        M = mass(helix, self.inertia, kin, self.params.quadrature_order)
         d = self.state.curvatures - self.rest
         return {"kinetic": float(dyn.kinetic_energy(M, self.state.rates).sum()),
-                "elastic": float(0.5 * np.sum(self.K * d * d)),
-                "gravity": float(sh.gravity_potential(helix, self.inertia.linear, self.gravity, kin).sum())}
+                "elastic": float(0.5 * np.sum(d * self._stiffness_apply(d))),
+                "gravity": float(self.model.gravity_potential(helix, self.inertia.linear, self.gravity, kin).sum())}
 
 
 # --------------------------------------------------------------------------- the one-call API
@@ -485,7 +568,7 @@ def simulate(helix: sh.SuperHelix, rest_curvatures, material: Material, gravity,
     setup = time.perf_counter() - t_start
     steps = int(round(seconds / dt))
     every = 1 if not frames_per_second else max(1, int(round(1.0 / (frames_per_second * dt))))
-    pts0, offsets, _, _ = sh.sample(sim.helix(), samples_per_frame_element)
+    pts0, offsets, _, _ = sim.model.sample(sim.helix(), samples_per_frame_element)
     frames = [pts0]
     times = [0.0]
     tips = [sim.tips()]
@@ -508,7 +591,7 @@ def simulate(helix: sh.SuperHelix, rest_curvatures, material: Material, gravity,
             h_now = sim.helix()
             tips.append(sim.tips(h_now))
             if (k + 1) % every == 0 or k + 1 == steps:
-                frames.append(sh.sample(h_now, samples_per_frame_element)[0])
+                frames.append(sim.model.sample(h_now, samples_per_frame_element)[0])
                 times.append(sim.state.time)
             if callback is not None:
                 callback(sim, system)
@@ -530,6 +613,84 @@ def simulate(helix: sh.SuperHelix, rest_curvatures, material: Material, gravity,
              "seconds": steps * dt, "modified_step_matrices": sim.modified_strands,
              "rate_limited_strand_steps": sim.clamped_strands,
              "detection_passes": tracker.passes if tracker is not None else 0,
-             "detection_reused": tracker.reused if tracker is not None else 0}
+             "detection_reused": tracker.reused if tracker is not None else 0,
+             "model": "clothoid" if sim.clothoid else "superhelix",
+             # the clothoid's A(q, qd) is not computed: dropped whatever params.velocity_terms says (exact at rest)
+             "velocity_terms": bool(params.velocity_terms) and not sim.clothoid}
     return SimulationResult(times=np.array(times), frames=np.stack(frames), offsets=offsets, tips=np.stack(tips),
                             final=sim.state, helix=sim.helix(), timings=timings, stats=stats)
+
+
+# --------------------------------------------------------------------------- Super Space Clothoid helpers
+def _clothoid_stiffness(rod: cl.SuperClothoid, material: Material, stiffness):
+    """The banded K (diagonal blocks (S, N + 1, 3), off-diagonal blocks (S, N, 3)) of the material, or ``stiffness``
+    given in that form (e.g. the per-strand materials of groom check), checked."""
+    if stiffness is None:
+        return cl.stiffness(rod, material.stiffness_diag)
+    diag, off = (np.asarray(x, dtype=np.float64) for x in stiffness)
+    S, N = rod.lengths.shape
+    if diag.shape != (S, N + 1, 3) or off.shape != (S, N, 3):
+        raise ValueError(f"a clothoid's stiffness is banded: (diagonal (S, N + 1, 3), off-diagonal (S, N, 3)) = "
+                         f"({(S, N + 1, 3)}, {(S, N, 3)}), got {diag.shape}, {off.shape}")
+    return diag, off
+
+
+def _banded_dense(diag: np.ndarray, off: np.ndarray) -> np.ndarray:
+    """The dense (S, 3 n, 3 n) block-tridiagonal K from its banded blocks: diagonal (S, n, 3), off (S, n - 1, 3)
+    (every block diagonal in the components, K = D (x) M_FE)."""
+    S, n = diag.shape[:2]
+    K = np.zeros((S, n, 3, n, 3))
+    i = np.arange(n)
+    c = np.arange(3)
+    K[:, i[:, None], c[None, :], i[:, None], c[None, :]] = diag
+    j = np.arange(n - 1)
+    K[:, j[:, None], c[None, :], j[:, None] + 1, c[None, :]] = off
+    K[:, j[:, None] + 1, c[None, :], j[:, None], c[None, :]] = off
+    return K.reshape(S, 3 * n, 3 * n)
+
+
+def _clothoid_part(rod: cl.SuperClothoid, kin, a: int, b: int):
+    """Strands a..b-1 of a clothoid groom and their kinematics, trimmed to their largest element count (no
+    recomputation: the arrays are sliced)."""
+    n = max(int(rod.n_elements[a:b].max(initial=1)), 1)
+    sub = cl.SuperClothoid(rod.root_positions[a:b], rod.root_frames[a:b], rod.lengths[a:b, :n],
+                           rod.curvatures[a:b, :n + 1], rod.n_elements[a:b])
+    el = {name: getattr(kin, name)[a:b, :n] for name in ("Q", "p", "P", "Mphi", "MX", "MZ", "a", "b", "stats")}
+    return sub, cl.Kinematics(sub, kin.C[a:b, :n + 1], kin.R[a:b, :n + 1], **el)
+
+
+POLISH_MAX_ROWS = 3000  # sticking contact rows up to which _polish_sticking builds a dense W_SS
+POLISH_RCOND = 1e-6  # singular values of W_SS below this fraction of the largest are left alone
+
+
+def _polish_sticking(problem, r, err, error, status):
+    """Super Space Clothoids: the sticking contacts' impulses made exact (u_S = 0 to round-off) by one least-squares
+    correction, kept only when the law residual does not grow.
+
+    Why: on a clothoid the contacts near the root all lie on the first element(s), whose two nodes they can hardly
+    move apart (the rows of H there have singular values down to ~1e-5 of the largest), and the light zig-zag modes
+    of the nodal curvatures (v_j = -v_{j+1}) are steered by the contact impulses' error in those weak directions.
+    With the solver's tolerance (1e-8 of the weight impulse) that error fed back into a mode growing ~1.8x per step
+    (a numerical instability: the stick-constrained strand and the step with exact impulses are stable, checked by
+    their linearisations; measured on example_groom(4, seed=3) inverted at r_c = 0.5 mm: 2x per step from step 30,
+    solves failing from step 41).  Applied to clothoids only: the Super-Helix path is unchanged.
+    Sticking: r_N > 0 and |r_T| < mu r_N strictly; the correction is the minimum-norm least-squares solution of
+    W_SS dr_S = -u_S over the well-determined directions of W_SS (singular values above POLISH_RCOND of the largest;
+    W_SS may be singular: several contacts on one element).  The weak directions are left as the solver had them:
+    corrected from round-off-level u they amplify noise (measured on that groom, 240 steps: cut-off 1e-13, 40 failed
+    solves; 1e-10, 106; 1e-7 and 1e-5, none, tip drift 4e-13 and 2e-15 m)."""
+    R = np.asarray(r, dtype=np.float64).reshape(-1, 3)
+    tangential = np.linalg.norm(R[:, 1:], axis=1)
+    stick = (R[:, 0] > 0.0) & (tangential < (1.0 - 1e-9) * problem.mu * R[:, 0])
+    rows = np.flatnonzero(np.repeat(stick, 3))
+    if len(rows) == 0 or len(rows) > POLISH_MAX_ROWS:
+        return r, err, status
+    u = problem.velocity(R.ravel())
+    W = problem.assemble_W()[rows][:, rows].toarray()
+    delta = np.linalg.lstsq(W, -u[rows], rcond=POLISH_RCOND)[0]
+    candidate = R.ravel().copy()
+    candidate[rows] += delta
+    err_new = error(candidate)
+    if err_new <= err:
+        return candidate, err_new, status + "+polished"
+    return r, err, status

@@ -29,7 +29,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .rods import clothoid as cl
 from .rods import superhelix as sh
+
+
+def rod_module(rod):
+    """The rod model's module (sample, evaluate): rods.clothoid for Super Space Clothoids, else rods.superhelix."""
+    return cl if isinstance(rod, cl.SuperClothoid) else sh
 
 
 # --------------------------------------------------------------------------- pure helpers
@@ -98,7 +104,8 @@ def reevaluate(helix: sh.SuperHelix, kin, contacts, head_surface, transform=None
     normal where they coincide).  Frames: e_T1 along ``tangents`` (default the strand tangent)."""
     from .contact import contact_frames
 
-    x_a, R_a = sh.evaluate(helix, contacts.strand_a, contacts.s_a, kin)
+    model = rod_module(helix)
+    x_a, R_a = model.evaluate(helix, contacts.strand_a, contacts.s_a, kin)
     head = contacts.strand_b < 0
     point_b = np.empty_like(x_a)
     normal = np.empty_like(x_a)
@@ -113,7 +120,7 @@ def reevaluate(helix: sh.SuperHelix, kin, contacts, head_surface, transform=None
             d, c, n, _ = head_surface.query(x)
         dist[head], point_b[head], normal[head] = d, c, n
     if np.any(~head):
-        x_b, _ = sh.evaluate(helix, contacts.strand_b[~head], contacts.s_b[~head], kin)
+        x_b, _ = model.evaluate(helix, contacts.strand_b[~head], contacts.s_b[~head], kin)
         gap = x_a[~head] - x_b
         d = np.linalg.norm(gap, axis=1)
         n = np.where(d[:, None] > 1e-12, gap / np.maximum(d, 1e-300)[:, None], contacts.normal[~head])
@@ -253,7 +260,7 @@ class ContactTracker:
 
     # ---------------------------------------------------------------- detection
     def _samples(self, helix, kin, t):
-        pts, offsets, _, arc = sh.sample(helix, self.params.samples_per_element, kin)
+        pts, offsets, _, arc = rod_module(helix).sample(helix, self.params.samples_per_element, kin)
         transform = self.motion.transform(t)
         if transform is not None:
             R, T = transform

@@ -921,3 +921,61 @@ def mass_matrix(clothoid: SuperClothoid, linear_density: float, kin: Kinematics 
             weight = linear_density * wq * clothoid.lengths[:, j]
             M += weight[:, None, None] * np.einsum("sai,saj->sij", J, J)
     return M
+
+
+# --------------------------------------------------------------------------- for the simulator (appended)
+def point_jacobians_rotation(clothoid: SuperClothoid, strand, s, kin: Kinematics | None = None):
+    """:func:`point_jacobians` together with the angular-velocity Jacobians and the frames (for the simulator's
+    kinetic energy): returns (J, Jw, R, elem) with J = dC(s)/dq and Jw = dpsi(s)/dq, (P, N + 1, 3, 3) each, the
+    frame R(s) (P, 3, 3) and the element index (P,).
+
+    psi(s) = int_0^s R dOmega is the world rotation vector of the frame at s (module docstring), so with the hat
+    functions, Jw_i(s) = int_0^s N_i R dtau: R_k int_k N_i Phi over the whole elements k before s (the Theta
+    terms of :func:`node_jacobian_terms`) plus R_e int_0^t N_i Phi on the point's own element."""
+    kin = _with_moments(clothoid, kin)
+    strand = np.ascontiguousarray(strand, dtype=np.int64)
+    elem, t = locate(clothoid, strand, s)
+    Phi, p, Mphi, MX = _partial(clothoid, kin, strand, elem, t)
+    Re = kin.R[strand, elem]
+    x = kin.C[strand, elem] + np.einsum("pab,pb->pa", Re, p)
+    Ts, Te, Bs, Be = node_jacobian_terms(kin)
+    n_pts = len(strand)
+    N = clothoid.max_elements
+    full = (np.arange(N)[None, :] < elem[:, None])[..., None, None]
+    xs = skew(x)[:, None]
+    Tsp = np.where(full, Ts[strand], 0.0)
+    Tep = np.where(full, Te[strand], 0.0)
+    J = np.zeros((n_pts, N + 1, 3, 3), dtype=Tsp.dtype)
+    J[:, :-1] += np.where(full, Bs[strand], 0.0) - xs @ Tsp
+    J[:, 1:] += np.where(full, Be[strand], 0.0) - xs @ Tep
+    Jw = np.zeros_like(J)
+    Jw[:, :-1] += Tsp
+    Jw[:, 1:] += Tep
+    le = clothoid.lengths[strand, elem]
+    As, Ae = _hat_split(Mphi, le)
+    Ys, Ye = _hat_split(MX[:, :2], le)
+    px = skew(p)
+    idx = np.arange(n_pts)
+    J[idx, elem] += Re @ (Ys - px @ As)
+    J[idx, elem + 1] += Re @ (Ye - px @ Ae)
+    Jw[idx, elem] += Re @ As
+    Jw[idx, elem + 1] += Re @ Ae
+    return J, Jw, Re @ Phi, elem
+
+
+def node_velocities(clothoid: SuperClothoid, rates: np.ndarray, kin: Kinematics | None = None) -> np.ndarray:
+    """Velocities of the nodes (S, N + 1, 3) for nodal rates (S, N + 1, 3), root at rest, in O(N) per strand:
+    Cdot(x) = sum over the elements k before x of (B_k - [x]x Theta_k) applied to the rates of the element's two
+    nodes (:func:`node_jacobian_terms`), i.e. a prefix sum of beta_k = Bs_k v_k + Be_k v_{k+1} minus x cross the
+    prefix sum of omega_k = Ts_k v_k + Te_k v_{k+1}."""
+    kin = _with_moments(clothoid, kin)
+    v = np.asarray(rates, dtype=np.float64).reshape(clothoid.curvatures.shape)
+    Ts, Te, Bs, Be = node_jacobian_terms(kin)
+    beta = np.einsum("snab,snb->sna", Bs, v[:, :-1]) + np.einsum("snab,snb->sna", Be, v[:, 1:])
+    omega = np.einsum("snab,snb->sna", Ts, v[:, :-1]) + np.einsum("snab,snb->sna", Te, v[:, 1:])
+    mask = clothoid.element_mask[..., None]
+    S = clothoid.n_strands
+    zero = np.zeros((S, 1, 3))
+    B = np.concatenate([zero, np.cumsum(beta * mask, axis=1)], axis=1)
+    W = np.concatenate([zero, np.cumsum(omega * mask, axis=1)], axis=1)
+    return (B - np.cross(kin.C, W)) * clothoid.node_mask[..., None]

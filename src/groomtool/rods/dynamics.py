@@ -41,6 +41,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
+from . import clothoid as cl
 from .series import _f_point
 from .superhelix import Kinematics, SuperHelix, _e0_jacobian, kinematics
 
@@ -472,3 +473,39 @@ def _inertia_kernel(l, w, z, C, R, Dl, Theta, n_elements, xg, wg, rhoS, rot, u, 
                         else:
                             M[s, 3 * j + a, 3 * k + b] = v
                             M[s, 3 * k + b, 3 * j + a] = v
+
+
+# --------------------------------------------------------------------------- Super Space Clothoids (the simulator's)
+def clothoid_mass_matrix(clothoid, inertia: Inertia, kin=None, order: int = 4) -> np.ndarray:
+    """M = int rhoS J^T J + Jw^T II Jw ds of Super Space Clothoids (rods/clothoid.py), (S, 3(N + 1), 3(N + 1)) on
+    the nodal dofs, with the cross-section rotation as for the helix (II = R diag(rho J, rho I, rho I) R^T; without it
+    the twist of a straight piece would have no inertia).  Gauss-Legendre with ``order`` points per element (the
+    integrand is smooth, not polynomial: a quadrature), J and Jw from
+    :func:`groomtool.rods.clothoid.point_jacobians_rotation`, one batched product per quadrature node.  Rows and
+    columns of padding nodes are 0.  O(N^2) per strand and point: dense, for the simulator's small strands."""
+    kin = kin if kin is not None else cl.kinematics(clothoid)
+    S, N = clothoid.lengths.shape
+    n = 3 * (N + 1)
+    xg, wg = np.polynomial.legendre.leggauss(order)
+    xg = 0.5 * (xg + 1.0)
+    wg = 0.5 * wg
+    starts = clothoid.element_starts[:, :-1]
+    strand = np.repeat(np.arange(S), N)
+    rot = np.asarray(inertia.rotational, dtype=np.float64)
+    M = np.zeros((S, n, n))
+    for xq, wq in zip(xg, wg):
+        s = (starts + xq * clothoid.lengths).ravel()
+        J, Jw, R, _ = cl.point_jacobians_rotation(clothoid, strand, s, kin)
+        w = (wq * clothoid.lengths).reshape(S * N, 1, 1)
+        lin = (np.sqrt(inertia.linear * w) * J.transpose(0, 2, 1, 3).reshape(S * N, 3, n)).reshape(S, N * 3, n)
+        # material-frame angular Jacobian R^T Jw, scaled by sqrt(w rho (J, I, I)) per axis
+        Jm = np.einsum("pba,pbc->pac", R, Jw.transpose(0, 2, 1, 3).reshape(S * N, 3, n))
+        Jm = (np.sqrt(w * rot[None, :, None]) * Jm).reshape(S, N * 3, n)
+        M += np.swapaxes(lin, 1, 2) @ lin + np.swapaxes(Jm, 1, 2) @ Jm
+    return 0.5 * (M + np.swapaxes(M, 1, 2))
+
+
+def clothoid_node_speeds(clothoid, rates: np.ndarray, kin=None) -> np.ndarray:
+    """(S,) per strand the max over its nodes of |Cdot| (root at rest;
+    :func:`groomtool.rods.clothoid.node_velocities`)."""
+    return np.linalg.norm(cl.node_velocities(clothoid, rates, kin), axis=-1).max(axis=1)
