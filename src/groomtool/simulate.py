@@ -30,6 +30,11 @@ at their arc lengths), so a strand draped over a surface keeps several supports.
 At an equilibrium the inversion produced (K (q - q0) = F + H^T r_inv, r_inv in the cones), v = 0 and
 r = h r_inv solve the first step exactly: u = W (h r_inv) + b = H Mhat^-1 h (F - K (q - q0) + H^T r_inv) = 0.
 
+Super Space Clothoids (rods/clothoid.py, ``groom invert --model clothoid``) take the same step on their nodal
+curvatures (Simulator._clothoid_dynamics: M with the cross-section rotation, complex-step dF/dq, the
+block-tridiagonal K; their velocity terms A are not computed, exact at rest; sticking impulses polished,
+_polish_sticking); docs/simulation.md section 8.
+
 Modules: simulate_motion.py (head and root motion), simulate_contacts.py (detection kept while nothing
 moved, persistence, velocity targets, warm start), simulate_linalg.py (per-strand factorisation and
 solves), simulate_progress.py (progress and run-time estimate), this one (parameters, the step, the
@@ -166,7 +171,8 @@ class SimulationResult:
 
 # --------------------------------------------------------------------------- the simulator
 class Simulator:
-    """Steps Super-Helices forward in time (module docstring).
+    """Steps Super-Helices (or Super Space Clothoids: a cl.SuperClothoid ``helix``, nodal (S, N + 1, 3) curvatures,
+    rest and rates, ``stiffness`` as banded (diagonal, off-diagonal) blocks) forward in time (module docstring).
 
     helix: the initial configuration (q and root); rest_curvatures q0 (S, N, 3); material; gravity (3,);
     head: a trimesh.Trimesh or None; head_motion: None (static) or t -> (R (3,3), T (3,)) mapping the
