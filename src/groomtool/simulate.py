@@ -335,13 +335,13 @@ class Simulator:
             self._factors = StrandFactors(self._dof_blocks)
         t0 = self._time("dynamics", t0)
         for a, b in self._chunks:
-            sub, sub_kin = _clothoid_part(helix, kin, a, b)
-            M = dyn.clothoid_mass_matrix(sub, self.inertia, sub_kin, p.quadrature_order)
+            M, dF = _clothoid_step_terms(helix, kin, np.arange(a, b), self.inertia, self.gravity,
+                                         p.quadrature_order, p.implicit_gravity)
             n = M.shape[1]
             nodes = n // 3
             rhs[a:b, :n] = (np.einsum("sij,sj->si", M, st.rates[a:b, :nodes].reshape(b - a, n))
                             + h * force[a:b, :nodes].reshape(b - a, n))
-            dF = cl.gravity_force_jacobian(sub, self.inertia.linear, self.gravity, sub_kin) if p.implicit_gravity else M
+            dF = M if dF is None else dF
             K = _banded_dense(self.K[0][a:b, :nodes], self.K[1][a:b, :nodes - 1])
             t0 = self._time("dynamics", t0)
             # a = (1 + h alpha) M + (h^2 + h beta) K (K not diagonal: passed inside a), b = -h^2 dF/dq
@@ -655,14 +655,49 @@ def _banded_dense(diag: np.ndarray, off: np.ndarray) -> np.ndarray:
     return K.reshape(S, 3 * n, 3 * n)
 
 
-def _clothoid_part(rod: cl.SuperClothoid, kin, a: int, b: int):
-    """Strands a..b-1 of a clothoid groom and their kinematics, trimmed to their largest element count (no
-    recomputation: the arrays are sliced)."""
-    n = max(int(rod.n_elements[a:b].max(initial=1)), 1)
-    sub = cl.SuperClothoid(rod.root_positions[a:b], rod.root_frames[a:b], rod.lengths[a:b, :n],
-                           rod.curvatures[a:b, :n + 1], rod.n_elements[a:b])
-    el = {name: getattr(kin, name)[a:b, :n] for name in ("Q", "p", "P", "Mphi", "MX", "MZ", "a", "b", "stats")}
-    return sub, cl.Kinematics(sub, kin.C[a:b, :n + 1], kin.R[a:b, :n + 1], **el)
+def _clothoid_part(rod: cl.SuperClothoid, kin, ids: np.ndarray):
+    """Strands ``ids`` of a clothoid groom and their kinematics, trimmed to their largest element count (no
+    recomputation: the arrays are gathered)."""
+    n = max(int(rod.n_elements[ids].max(initial=1)), 1)
+    sub = cl.SuperClothoid(rod.root_positions[ids], rod.root_frames[ids], rod.lengths[ids, :n],
+                           rod.curvatures[ids, :n + 1], rod.n_elements[ids])
+    el = {name: getattr(kin, name)[ids, :n] for name in ("Q", "p", "P", "Mphi", "MX", "MZ", "a", "b", "stats")}
+    return sub, cl.Kinematics(sub, kin.C[ids, :n + 1], kin.R[ids, :n + 1], **el)
+
+
+GROUP_RATIO = 1.25  # clothoid strands whose element counts are within this factor share one dense batch
+
+
+def element_count_groups(n_elements: np.ndarray, ratio: float = GROUP_RATIO) -> list[np.ndarray]:
+    """Positions of ``n_elements`` grouped by similar counts (sorted; a group's largest count <= ratio x its
+    smallest, or + 1): the dense clothoid terms then cost about sum_g S_g N_g^3, not S max(N)^3 on the padding."""
+    order = np.argsort(n_elements, kind="stable")
+    groups, start = [], 0
+    for k in range(1, len(order) + 1):
+        smallest = n_elements[order[start]]
+        if k == len(order) or n_elements[order[k]] > max(ratio * smallest, smallest + 1):
+            groups.append(order[start:k])
+            start = k
+    return groups
+
+
+def _clothoid_step_terms(rod: cl.SuperClothoid, kin, ids: np.ndarray, inertia, gravity, order: int,
+                         implicit_gravity: bool):
+    """M (len(ids), n, n) and dF/dq (or None) of the strands ``ids``, n = 3 (their largest N + 1), computed per
+    group of similar element counts (element_count_groups) on arrays trimmed to each group's N and scattered
+    into the padded result (zero rows and columns beyond a strand's nodes, as the factorisation expects)."""
+    n_el = rod.n_elements[ids]
+    n = 3 * (max(int(n_el.max(initial=1)), 1) + 1)
+    M = np.zeros((len(ids), n, n))
+    dF = np.zeros((len(ids), n, n)) if implicit_gravity else None
+    for group in element_count_groups(n_el):
+        sub, sub_kin = _clothoid_part(rod, kin, ids[group])
+        Mg = dyn.clothoid_mass_matrix(sub, inertia, sub_kin, order)
+        m = Mg.shape[1]
+        M[group, :m, :m] = Mg
+        if implicit_gravity:
+            dF[group, :m, :m] = cl.gravity_force_jacobian(sub, inertia.linear, gravity, sub_kin)
+    return M, dF
 
 
 POLISH_MAX_ROWS = 3000  # sticking contact rows up to which _polish_sticking builds a dense W_SS

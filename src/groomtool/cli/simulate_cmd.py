@@ -109,7 +109,9 @@ def _is_result(path: Path) -> bool:
 
 def load_simulation_input(args):
     """(helix, rest curvatures, material, gravity, head, contact mode, radius, up, stiffness) from a result
-    (stiffness: its per-strand K (S, N, 3), or None) or a groom file (None)."""
+    (either rod model: a Super Space Clothoid result gives a cl.SuperClothoid with nodal curvatures; stiffness:
+    its per-strand K (S, N, 3), banded (diagonal, off-diagonal) blocks for a clothoid, or None) or a groom file
+    (None)."""
     from ..groom import UNIT_SCALE, GroomError
     from ..io import load_groom, load_head
 
