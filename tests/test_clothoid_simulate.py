@@ -128,3 +128,28 @@ def test_groom_check_on_a_clothoid_inversion_output(tmp_path):
     assert report["inverted"]["max_tip_drift_m"] < 1e-8
     assert report["naive"]["max_tip_drift_m"] > 1e3 * max(report["inverted"]["max_tip_drift_m"], 1e-12)
     assert report["inverted"]["solver"]["failures"] == 0
+
+
+def test_per_strand_stiffness_is_the_banded_blocks():
+    """Stiffened strands (groom check's per-strand materials): the banded (diagonal, off-diagonal) blocks times the
+    factor hold the isolated equilibrium computed with that K; the scalar material's K does not."""
+    from groomtool.material import Material
+
+    mat = Material()
+    q = np.zeros((2, 5, 3))
+    q[:, :, 1], q[:, :, 2] = 20.0, -8.0
+    frames = np.stack([np.array([[1.0, 0, 0], [0, 1, 0], [0, 0, 1]]), np.array([[0, 1.0, 0], [-1, 0, 0], [0, 0, 1]])])
+    rod = cl.SuperClothoid(np.zeros((2, 3)), frames, np.full((2, 4), 0.02), q)
+    factor = np.array([3.0, 1.0])
+    diag, off = cl.stiffness(rod, mat.stiffness_diag)
+    K = (diag * factor[:, None, None], off * factor[:, None, None])
+    gravity = np.array([0.0, -9.81, 0.0])
+    F = cl.gravity_force(rod, mat.linear_density, gravity)
+    q0 = q - cl.stiffness_solve(rod, mat.stiffness_diag, F) / factor[:, None, None]
+    params = SimulationParams(contacts="none")
+    held = simulate(rod, q0, mat, gravity, seconds=10 / 240, params=params, stiffness=K, frames_per_second=None)
+    soft = simulate(rod, q0, mat, gravity, seconds=10 / 240, params=params, frames_per_second=None)
+    assert np.linalg.norm(held.tips[-1] - held.tips[0], axis=1).max() < 1e-12
+    assert np.linalg.norm(soft.tips[-1, 0] - soft.tips[0, 0]) > 1e-5  # the stiffened strand sags with the scalar K
+    with pytest.raises(ValueError, match="banded"):
+        Simulator(rod, q0, mat, gravity, params=params, stiffness=K[0])
