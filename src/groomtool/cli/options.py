@@ -89,7 +89,7 @@ def check_invert_options(args) -> None:
     if getattr(args, "model", "superhelix") == "clothoid":
         other = [f for f in (getattr(args, "format", None) or ()) if f not in CLOTHOID_FORMATS]
         if other:
-            raise UserError(f"--format {', '.join(other)}: not available with --model clothoid yet (its exporters "
+            raise UserError(f"--format {', '.join(other)}: not available with --model clothoid yet (the exporters "
                             f"take Super-Helices only; docs/clothoid.md); --model clothoid writes "
                             f"{', '.join(CLOTHOID_FORMATS)}")
 

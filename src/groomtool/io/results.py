@@ -252,11 +252,12 @@ def result_clothoid(arrays: dict, rest: bool = False) -> cl.SuperClothoid:
 
 def result_helix(arrays: dict, rest: bool = False) -> sh.SuperHelix:
     """The fitted Super-Helices (``rest=True``: with the rest curvatures), padded.  A Super Space Clothoid result
-    raises :class:`ModelError` (the simulator, ``groom check`` and the exporters take Super-Helices only)."""
+    raises :class:`ModelError` (the exporters and the viewer take Super-Helices only; the simulator and ``groom check``
+    read either model through :meth:`SavedResult.rod`)."""
     if result_model(arrays) == "clothoid":
         raise ModelError(f"{arrays.get('source', 'rest.npz')}: a Super Space Clothoid result (groom invert --model "
-                         "clothoid): groom check, groom simulate and the exporters take Super-Helix results only so "
-                         "far (docs/clothoid.md, 'Not done'); read it with groomtool.io.results.read_result(...)"
+                         "clothoid): the exporters and the viewer take Super-Helix results only so far "
+                         "(docs/clothoid.md, 'Not done'); read it with groomtool.io.results.read_result(...)"
                          ".clothoid()")
     offsets = np.asarray(arrays["strand_offsets"], dtype=np.int64)
     counts = np.diff(offsets)
