@@ -322,42 +322,6 @@ def test_stabilisation_rounds_restart_gauss_seidel_from_the_previous_forces(drap
     assert np.abs(res.rest_curvatures - cold.rest_curvatures).max() <= 1e-6 * scale
 
 
-def test_rounds_between_the_first_and_the_last_are_solved_loosely(draped, sphere, monkeypatch):
-    """Stabilisation (issue 16): the first solve and the last (once no strand needs more stiffening) are full,
-    the ones in between stop at stabilize.ROUND_* tolerances; the result is the full-tolerance optimum with the
-    final factors (a cold solve), and the loose rounds were really solved with the loose settings."""
-    import importlib
-
-    from groomtool.stabilize import ROUND_Q0_TOLERANCE, ROUND_SOLVER_TOLERANCE
-
-    invert_mod = importlib.import_module("groomtool.invert")  # the module (groomtool.invert is also a function)
-
-    seen = []
-    real = invert_mod.solve_inverse_problem
-
-    def spy(problem, helix, params, *args, **kw):
-        seen.append((params.solver_tolerance, params.q0_tolerance))
-        return real(problem, helix, params, *args, **kw)
-
-    monkeypatch.setattr(invert_mod, "solve_inverse_problem", spy)
-    groom, _ = draped
-    params = _params(solver="gs", solver_tolerance=1e-9, stabilize="stiffness")
-    res = invert_groom(groom, head=sphere, params=params)
-    history = res.report["stability"]["stabilization"]["history"]
-    kinds = [h["solve_tolerance"] for h in history]
-    assert len(history) >= 3 and kinds[0] == kinds[-1] == "full" and "round" in kinds  # the situation tested
-    assert all(k == "round" for k in kinds[1:-1])
-    assert [s for s, k in zip(seen, kinds) if k == "full"] == [(1e-9, None)] * kinds.count("full")
-    assert [s for s, k in zip(seen, kinds) if k == "round"] == [(ROUND_SOLVER_TOLERANCE, ROUND_Q0_TOLERANCE)] * \
-        kinds.count("round")
-    assert res.report["solve"]["status"] == "solved" and res.report["solve"]["residual"] <= 1e-9
-    assert res.report["stability"]["stabilization"]["unstable_strands"] == 0
-    cold = invert_groom(groom, head=sphere, params=_params(solver="gs", solver_tolerance=1e-9, stabilize="none",
-                                                           stiffness_factor=res.stiffness_factor))
-    scale = np.abs(cold.rest_curvatures).max()
-    assert np.abs(res.rest_curvatures - cold.rest_curvatures).max() <= 1e-6 * scale
-
-
 def test_q0_tolerance_stops_gauss_seidel_once_the_rest_curvatures_are_certified(draped, sphere):
     groom, ref = draped
     res = invert_groom(groom, head=sphere, params=_params(solver="gs", q0_tolerance=1e-4))

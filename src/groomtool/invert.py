@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 import warnings
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -27,8 +27,7 @@ from .rods.der import der_rest_data
 from .rods.discrete import RestDataError, prepare_rods, strand_stiffness_factors
 from .solver_choice import AUTO_GS_MAX_REDUNDANT, Q0_TOLERANCE, redundant_strand_fraction
 from .stability import HeldStability, held_stiffness_ratios, stiffness_ratios
-from .stabilize import (DEFAULT_CAP, DEFAULT_MARGIN, MAX_ROUNDS, ROUND_Q0_TOLERANCE, ROUND_SOLVER_TOLERANCE,
-                        STABILIZE_MODES, stabilization_report, stiffening_step)
+from .stabilize import DEFAULT_CAP, DEFAULT_MARGIN, MAX_ROUNDS, STABILIZE_MODES, stabilization_report, stiffening_step
 from .timing import Timer, progress
 
 GUESSES = ("current", "tip")
@@ -276,17 +275,14 @@ def invert_groom(groom: Groom, head=None, params: InversionParams | None = None,
             raise ValueError(f"stiffness_factor must be {helix.n_strands} positive numbers, one per strand")
         factor = given.copy()
     held, rounds, history = None, 0, []
-    # rounds after a stiffening are solved loosely until no strand needs more (stabilize.ROUND_*), then once more
-    # to the full tolerance; the first round is solved fully (most grooms need no second one)
-    loose = False
     while True:
         if contacts is not None:
             with timer.stage("solve"):
                 problem = build_inverse_problem(helix, F, H, material, gravity, params.guess, params.gamma, mu_solve,
                                                 stiffness_factor=factor)
                 # a re-solve after stiffening starts from the previous round's forces
-                solve = solve_inverse_problem(problem, helix, _round_params(params) if loose else params, quiet,
-                                              redundant, initial_forces=forces if history else None)
+                solve = solve_inverse_problem(problem, helix, params, quiet, redundant,
+                                              initial_forces=forces if rounds > 0 else None)
             forces = solve["forces"]
             report["solve"] = {k: v for k, v in solve.items() if k != "forces"}
             report["solve"]["objective"] = problem.objective(forces.ravel())
@@ -294,7 +290,7 @@ def invert_groom(groom: Groom, head=None, params: InversionParams | None = None,
             report["solve"]["friction_margin"] = params.friction_margin
             report["solve"]["gamma"] = params.gamma
             report["solve"]["guess"] = params.guess
-            if not solve["converged"] and not loose:
+            if not solve["converged"]:
                 if params.strict or not solve.get("feasible"):
                     report["timings_s"] = dict(timer.stages)
                     raise SolverFailure(_failure_message(solve, params), solve["status"], solve["residual"], report)
@@ -311,16 +307,11 @@ def invert_groom(groom: Groom, head=None, params: InversionParams | None = None,
         step = stiffening_step(held.ratio, factor, params.stability_margin, params.max_stiffness_factor)
         history.append({"unstable": int(np.count_nonzero(held.ratio >= factor)),
                         "max_ratio": float(held.ratio.max()) if len(held.ratio) else 0.0,
-                        "solve_iterations": int(report["solve"]["iterations"]) if contacts is not None else 0,
-                        "solve_tolerance": "round" if loose else "full"})
+                        "solve_iterations": int(report["solve"]["iterations"]) if contacts is not None else 0})
         if params.stabilize != "stiffness" or step is None or rounds >= MAX_ROUNDS:
-            if loose:  # decided on a loose solve: solve to the full tolerance from its forces, check again
-                loose = False
-                continue
             break
         history[-1]["raised"] = int(np.count_nonzero(step > factor))
         factor, rounds = step, rounds + 1
-        loose = contacts is not None
     if contacts is not None and report["solve"].get("warning"):
         warnings.warn(report["solve"]["warning"], FeasibleSolveWarning, stacklevel=2)
 
@@ -492,15 +483,6 @@ def _failure_message(solve: dict, params: InversionParams) -> str:
         if params.strict:
             msg += "; without --strict they are written with status 'feasible'"
     return msg
-
-
-def _round_params(params: InversionParams) -> InversionParams:
-    """The solver settings of an intermediate stabilisation round: stop at a certified rest-curvature error of
-    stabilize.ROUND_Q0_TOLERANCE or a residual of ROUND_SOLVER_TOLERANCE, whichever the user's are not
-    already looser than."""
-    q0 = params.q0_tolerance
-    return replace(params, solver_tolerance=max(params.solver_tolerance, ROUND_SOLVER_TOLERANCE),
-                   q0_tolerance=ROUND_Q0_TOLERANCE if q0 is None else max(q0, ROUND_Q0_TOLERANCE))
 
 
 def _accept_feasible(solve: dict, params: InversionParams) -> str:

@@ -24,12 +24,6 @@ STABILIZE_MODES = ("none", "stiffness", "report")
 DEFAULT_MARGIN = 1.1  # f_s = 1.1 rho_s: the weakest mode keeps ~10 % of its stiffness against gravity
 DEFAULT_CAP = 100.0  # no strand is made more than 100x stiffer
 MAX_ROUNDS = 8
-#: the contact solve of a stabilisation round between the first and the last (issue 16): it only decides which
-#: strands to stiffen (with a 10 % margin, DEFAULT_MARGIN), so it stops at a certified relative rest-curvature
-#: error of 1e-2 (or a residual of 1e-5); the last round, once no strand needs more, is solved to the full
-#: tolerance from its forces and checked again
-ROUND_Q0_TOLERANCE = 1e-2
-ROUND_SOLVER_TOLERANCE = 1e-5
 
 
 def stiffening_step(ratio: np.ndarray, factor: np.ndarray, margin: float = DEFAULT_MARGIN,
