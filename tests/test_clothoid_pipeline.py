@@ -263,3 +263,13 @@ def test_read_result_checks_the_clothoid_nodes(example, tmp_path):
 
     with pytest.raises(GroomError, match="clothoid_node_offsets"):
         read_result(arrays).clothoid()
+
+
+def test_clothoid_inversion_with_contacts_but_none_found(example):
+    """contacts asked for, none found (one strand, no head): the solve has no rows and q0 is the isolated one."""
+    groom_path, _ = example
+    one = _subset(load_groom(groom_path), [6])
+    with_contacts = invert_groom(one, None, InversionParams(model="clothoid", contacts="all"))
+    isolated = invert_groom(one, None, InversionParams(model="clothoid"))
+    assert with_contacts.report["contacts"]["total"] == 0
+    np.testing.assert_allclose(with_contacts.rest_curvatures, isolated.rest_curvatures, rtol=0, atol=1e-12)

@@ -258,12 +258,12 @@ def clothoid_inverse_square_blocks(clothoid: cl.SuperClothoid, material: Materia
     order = np.argsort(clothoid.n_elements, kind="stable")
     if strands is not None:
         order = order[np.isin(order, strands)]
-    for start in range(0, clothoid.n_strands, chunk):
+    for start in range(0, len(order), chunk):
         ids = order[start:start + chunk]
         sub = clothoid.subset(ids)
         K = cl.stiffness_matrix(sub, material.stiffness_diag) * f[ids, None, None]
         real = np.repeat(sub.node_mask, 3, axis=1)
-        K = np.where(real[:, :, None] & real[:, None, :], K, 0.0) + np.apply_along_axis(np.diag, 1, ~real)
+        K = np.where(real[:, :, None] & real[:, None, :], K, 0.0) + (~real)[:, :, None] * np.eye(real.shape[1])
         inv = np.linalg.inv(K)
         sq = inv @ inv
         for i, s in enumerate(ids):
