@@ -251,3 +251,28 @@ def test_padding_elements_are_identity():
     F0 = sh.gravity_force(helix, 0.01, g)
     F1 = sh.gravity_force(padded, 0.01, g)
     assert np.allclose(F1[:, :4], F0) and np.all(F1[:, 4:] == 0)
+
+
+@given(seed=st.integers(0, 10_000), scale=st.sampled_from([0.0, 1e-7, 3.0, 40.0, 150.0, 600.0]))
+@settings(max_examples=25, deadline=None)
+def test_compiled_point_jacobian_parts_equal_the_dense_jacobian(seed, scale):
+    """point_jacobian_parts (compiled, point by point) against point_jacobians (vectorised numpy, itself
+    checked by finite differences above): own blocks, points, and B_k - [x]x Theta_k upstream."""
+    helix = random_helix(seed, scale=scale, zero_some=True)
+    rng = np.random.default_rng(seed)
+    strand = rng.integers(0, helix.n_strands, size=40)
+    s = rng.uniform(0, 1, size=40) * helix.strand_lengths[strand]
+    s[:3] = 0.0  # roots and tips: t at the ends of an element
+    s[3:6] = helix.strand_lengths[strand[3:6]]
+    kin = sh.kinematics(helix)
+    J, elem_ref = sh.point_jacobians(helix, strand, s, kin)
+    elem, x, own = sh.point_jacobian_parts(helix, strand, s, kin)
+    np.testing.assert_array_equal(elem, elem_ref)
+    scale_J = max(1.0, np.abs(J).max())
+    assert np.abs(own - J[np.arange(len(s)), elem]).max() <= 1e-13 * scale_J
+    pos = sh.evaluate_positions(helix, strand, s, kin)
+    assert np.abs(x - pos).max() <= 1e-14 * max(1.0, np.abs(pos).max())
+    B = sh.upstream_jacobian_terms(kin)[strand]
+    up = B - sh.skew(x)[:, None] @ kin.Theta[strand]
+    k = np.arange(helix.max_elements)[None, :] < elem[:, None]
+    assert np.abs(up[k] - J[k]).max(initial=0.0) <= 1e-12 * scale_J
