@@ -153,3 +153,39 @@ def test_per_strand_stiffness_is_the_banded_blocks():
     assert np.linalg.norm(soft.tips[-1, 0] - soft.tips[0, 0]) > 1e-5  # the stiffened strand sags with the scalar K
     with pytest.raises(ValueError, match="banded"):
         Simulator(rod, q0, mat, gravity, params=params, stiffness=K[0])
+
+
+def test_clothoid_velocity_terms_follow_lagranges_equations():
+    """A = Mdot qd - 1/2 d(qd^T M qd)/dq with M differentiated by central differences (its own Gauss points); the
+    kinetic energy and momentum from the point velocities equal 1/2 v^T M v and M v; the opt-in reaches the step."""
+    rod = _rod()
+    inertia = dyn.Inertia(0.01, ROT)
+    rng = np.random.default_rng(3)
+    v = rng.normal(size=rod.curvatures.shape) * rod.node_mask[..., None]
+    M = dyn.clothoid_mass_matrix(rod, inertia, order=4)
+    vf = v.reshape(2, -1)
+    np.testing.assert_allclose(dyn.clothoid_kinetic_energy(rod, inertia, v, order=4), dyn.kinetic_energy(M, v),
+                               rtol=1e-12)
+    np.testing.assert_allclose(dyn.clothoid_momentum(rod, inertia, v, order=4).reshape(2, -1),
+                               np.einsum("sij,sj->si", M, vf), rtol=0, atol=1e-12 * np.abs(M).max())
+    A = dyn.clothoid_velocity_terms(rod, inertia, v, order=4).reshape(2, -1)
+    h = 1e-6
+    ref = np.zeros_like(A)
+    for s in range(2):
+        for j in range(3 * (int(rod.n_elements[s]) + 1)):
+            e = np.zeros(rod.curvatures.shape)
+            e.reshape(2, -1)[s, j] = h
+            dM = (dyn.clothoid_mass_matrix(rod.with_curvatures(rod.curvatures + e), inertia, order=4)[s]
+                  - dyn.clothoid_mass_matrix(rod.with_curvatures(rod.curvatures - e), inertia, order=4)[s]) / (2 * h)
+            ref[s] += dM @ vf[s] * vf[s, j]
+            ref[s, j] -= 0.5 * vf[s] @ dM @ vf[s]
+    np.testing.assert_allclose(A, ref, rtol=0, atol=1e-6 * np.abs(ref).max())
+    assert np.abs(A).max() > 1e-3 * np.abs(ref).max() and np.all(A.reshape(v.shape)[1, 3] == 0.0)
+    from groomtool.material import Material
+
+    on = simulate(rod, rod.curvatures, Material(), [0.0, -9.81, 0.0], seconds=2 / 240, frames_per_second=None,
+                  params=SimulationParams(contacts="none", clothoid_velocity_terms=True))
+    off = simulate(rod, rod.curvatures, Material(), [0.0, -9.81, 0.0], seconds=2 / 240, frames_per_second=None,
+                   params=SimulationParams(contacts="none"))
+    assert on.stats["velocity_terms"] is True and off.stats["velocity_terms"] is False
+    assert not np.array_equal(on.final.rates, off.final.rates)  # A(q, v) != 0 at the second step

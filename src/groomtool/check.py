@@ -251,7 +251,7 @@ def check_groom(outdir, seconds: float = 1.0, dt: float | None = None, contacts:
               "contact_radius_m": base.contact_radius, "head": inv.head is not None,
               "unstable_in_isolation": None if inv.stiffness_ratio is None else int(np.sum(inv.stiffness_ratio >= 1.0)),
               "per_strand_materials": inv.per_strand(), "model": inv.model}
-    if inv.model == "clothoid":
+    if inv.model == "clothoid" and not (base.velocity_terms and base.clothoid_velocity_terms):
         report["velocity_terms"] = ("dropped: A(q, qd) is not computed for Super Space Clothoids (zero at rest, so "
                                     "the inverted run is exact; the naive run's sag omits the Coriolis and "
                                     "centrifugal terms)")

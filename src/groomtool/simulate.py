@@ -31,9 +31,9 @@ At an equilibrium the inversion produced (K (q - q0) = F + H^T r_inv, r_inv in t
 r = h r_inv solve the first step exactly: u = W (h r_inv) + b = H Mhat^-1 h (F - K (q - q0) + H^T r_inv) = 0.
 
 Super Space Clothoids (rods/clothoid.py, ``groom invert --model clothoid``) take the same step on their nodal
-curvatures (Simulator._clothoid_dynamics: M with the cross-section rotation, complex-step dF/dq, the
-block-tridiagonal K; their velocity terms A are not computed, exact at rest; sticking impulses polished,
-_polish_sticking); docs/simulation.md section 8.
+curvatures (Simulator._clothoid_dynamics: M with the cross-section rotation, complex-step dF/dq, the block-tridiagonal
+K; their velocity terms A dropped, exact at rest, unless params.clothoid_velocity_terms; sticking impulses
+polished, _polish_sticking); docs/simulation.md section 8.
 
 Modules: simulate_motion.py (head and root motion), simulate_contacts.py (detection kept while nothing
 moved, persistence, velocity targets, warm start), simulate_linalg.py (per-strand factorisation and
@@ -108,6 +108,9 @@ class SimulationParams:
     max_iterations: int = 2000
     refresh_warm_start: bool = True  # one sweep from an accepted warm start (solve_contacts)
     keep_step_corrections: bool = True  # reuse a modified strand's step-matrix correction (factor_step_matrix)
+    # Super Space Clothoids: compute their velocity terms A (dyn.clothoid_velocity_terms: exact, but O(N^3) per strand
+    # and step by complex steps, 0.2-0.8 s per step on 5-strand USC styles); off: dropped (exact at rest)
+    clothoid_velocity_terms: bool = False
 
     def __post_init__(self):
         if self.contacts not in CONTACT_MODES:
@@ -194,8 +197,8 @@ class Simulator:
         self.params = params or SimulationParams()
         self.clothoid = isinstance(helix, cl.SuperClothoid)  # Super Space Clothoids: nodal dofs (module docstring)
         if self.clothoid and head_motion is not None:
-            raise NotImplementedError("a moving head is not supported for Super Space Clothoids (their velocity "
-                                      "terms, which carry the root's inertial forces, are not computed)")
+            raise NotImplementedError("a moving head is not supported for Super Space Clothoids (the inertial "
+                                      "forces of a moving root are not in their velocity terms)")
         self.material = material
         self.gravity = np.asarray(gravity, dtype=np.float64)
         self.head = head
@@ -246,6 +249,11 @@ class Simulator:
             self._time("detect", t0)
 
     # ---------------------------------------------------------------- geometry
+    @property
+    def velocity_terms(self) -> bool:
+        """Whether A(q, qd) is computed: params.velocity_terms, and for clothoids params.clothoid_velocity_terms too."""
+        return bool(self.params.velocity_terms) and (not self.clothoid or bool(self.params.clothoid_velocity_terms))
+
     @property
     def model(self):
         """The rod model's module: rods.clothoid or rods.superhelix (sample, kinematics, gravity_potential)."""
@@ -317,9 +325,10 @@ class Simulator:
         return helix, kin, v_free, t0
 
     def _clothoid_dynamics(self, st: State, pose, t0: float):
-        """Super Space Clothoids (nodal dofs): M with the cross-section rotation (dyn.clothoid_mass_matrix), F and dF/dq
-        (complex step), the block-tridiagonal K as each strand's dense block, the factorised Mhat and the free rates.
-        The velocity terms A(q, qd) are not computed (dropped: exact at rest, docs/simulation.md)."""
+        """Super Space Clothoids (nodal dofs): M with the cross-section rotation (dyn.clothoid_mass_matrix), the
+        velocity terms A only with params.clothoid_velocity_terms (dyn.clothoid_velocity_terms, Lagrange's equations
+        by complex steps; else dropped: exact at rest), F and dF/dq (complex step), the block-tridiagonal K as each
+        strand's dense block, the factorised Mhat and the free rates."""
         p = self.params
         h = p.dt
         helix = cl.SuperClothoid(pose.roots, pose.frames, self.lengths, st.curvatures, self.n_elements)
@@ -335,12 +344,13 @@ class Simulator:
             self._factors = StrandFactors(self._dof_blocks)
         t0 = self._time("dynamics", t0)
         for a, b in self._chunks:
-            M, dF = _clothoid_step_terms(helix, kin, np.arange(a, b), self.inertia, self.gravity,
-                                         p.quadrature_order, p.implicit_gravity)
+            M, dF, A = _clothoid_step_terms(helix, kin, np.arange(a, b), self.inertia, self.gravity,
+                                            p.quadrature_order, p.implicit_gravity,
+                                            st.rates if self.velocity_terms else None)
             n = M.shape[1]
             nodes = n // 3
-            rhs[a:b, :n] = (np.einsum("sij,sj->si", M, st.rates[a:b, :nodes].reshape(b - a, n))
-                            + h * force[a:b, :nodes].reshape(b - a, n))
+            f = force[a:b, :nodes] if A is None else force[a:b, :nodes] - A
+            rhs[a:b, :n] = np.einsum("sij,sj->si", M, st.rates[a:b, :nodes].reshape(b - a, n)) + h * f.reshape(b - a, n)
             dF = M if dF is None else dF
             K = _banded_dense(self.K[0][a:b, :nodes], self.K[1][a:b, :nodes - 1])
             t0 = self._time("dynamics", t0)
@@ -621,8 +631,7 @@ def simulate(helix: sh.SuperHelix, rest_curvatures, material: Material, gravity,
              "detection_passes": tracker.passes if tracker is not None else 0,
              "detection_reused": tracker.reused if tracker is not None else 0,
              "model": "clothoid" if sim.clothoid else "superhelix",
-             # the clothoid's A(q, qd) is not computed: dropped whatever params.velocity_terms says (exact at rest)
-             "velocity_terms": bool(params.velocity_terms) and not sim.clothoid}
+             "velocity_terms": sim.velocity_terms}
     return SimulationResult(times=np.array(times), frames=np.stack(frames), offsets=offsets, tips=np.stack(tips),
                             final=sim.state, helix=sim.helix(), timings=timings, stats=stats)
 
@@ -682,14 +691,16 @@ def element_count_groups(n_elements: np.ndarray, ratio: float = GROUP_RATIO) -> 
 
 
 def _clothoid_step_terms(rod: cl.SuperClothoid, kin, ids: np.ndarray, inertia, gravity, order: int,
-                         implicit_gravity: bool):
-    """M (len(ids), n, n) and dF/dq (or None) of the strands ``ids``, n = 3 (their largest N + 1), computed per
-    group of similar element counts (element_count_groups) on arrays trimmed to each group's N and scattered
-    into the padded result (zero rows and columns beyond a strand's nodes, as the factorisation expects)."""
+                         implicit_gravity: bool, rates=None):
+    """M (len(ids), n, n), dF/dq (or None) and the velocity terms A (len(ids), n / 3, 3) (None without ``rates``)
+    of the strands ``ids``, n = 3 (their largest N + 1), computed per group of similar element counts
+    (element_count_groups) on arrays trimmed to each group's N and scattered into the padded result (zero rows
+    and columns beyond a strand's nodes, as the factorisation expects)."""
     n_el = rod.n_elements[ids]
     n = 3 * (max(int(n_el.max(initial=1)), 1) + 1)
     M = np.zeros((len(ids), n, n))
     dF = np.zeros((len(ids), n, n)) if implicit_gravity else None
+    A = np.zeros((len(ids), n // 3, 3)) if rates is not None else None
     for group in element_count_groups(n_el):
         sub, sub_kin = _clothoid_part(rod, kin, ids[group])
         Mg = dyn.clothoid_mass_matrix(sub, inertia, sub_kin, order)
@@ -697,7 +708,9 @@ def _clothoid_step_terms(rod: cl.SuperClothoid, kin, ids: np.ndarray, inertia, g
         M[group, :m, :m] = Mg
         if implicit_gravity:
             dF[group, :m, :m] = cl.gravity_force_jacobian(sub, inertia.linear, gravity, sub_kin)
-    return M, dF
+        if rates is not None:
+            A[group, :m // 3] = dyn.clothoid_velocity_terms(sub, inertia, rates[ids[group], :m // 3], sub_kin, order)
+    return M, dF, A
 
 
 POLISH_MAX_ROWS = 3000  # sticking contact rows up to which _polish_sticking builds a dense W_SS

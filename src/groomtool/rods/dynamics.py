@@ -509,3 +509,101 @@ def clothoid_node_speeds(clothoid, rates: np.ndarray, kin=None) -> np.ndarray:
     """(S,) per strand the max over its nodes of |Cdot| (root at rest;
     :func:`groomtool.rods.clothoid.node_velocities`)."""
     return np.linalg.norm(cl.node_velocities(clothoid, rates, kin), axis=-1).max(axis=1)
+
+
+CLOTHOID_COMPLEX_STEP = 1e-30  # the clothoid's velocity terms: derivatives by the complex step (exact to round-off)
+
+
+def _clothoid_point_motion(clothoid, kin, rates, order: int):
+    """Per Gauss point (``order`` per element, all strands): weight w (S, N), the centreline velocity Cdot and the
+    material angular velocity R^T w of the rates (S * N per quadrature node, lists over the nodes) and the J, Jw, R
+    used (complex-safe: no conjugation anywhere)."""
+    S, N = clothoid.lengths.shape
+    xg, wg = np.polynomial.legendre.leggauss(order)
+    starts = clothoid.element_starts[:, :-1]
+    strand = np.repeat(np.arange(S), N)
+    v = np.asarray(rates).reshape(S, N + 1, 3)[strand]
+    out = []
+    for xq, wq in zip(0.5 * (xg + 1.0), 0.5 * wg):
+        s = (starts + xq * clothoid.lengths).ravel()
+        J, Jw, R, _ = cl.point_jacobians_rotation(clothoid, strand, s, kin)
+        cdot = np.einsum("pnac,pnc->pa", J, v)
+        om = np.einsum("pba,pnbc,pnc->pa", R, Jw, v)
+        out.append(((wq * clothoid.lengths).ravel(), cdot, om, J, Jw, R))
+    return out
+
+
+def clothoid_kinetic_energy(clothoid, inertia: Inertia, rates, kin=None, order: int = 4) -> np.ndarray:
+    """T = 1/2 int rhoS |Cdot|^2 + (R^T w)^T diag(rho J, rho I, rho I) (R^T w) ds per strand (S,), from the point
+    velocities at Gauss points (equal to 1/2 v^T M v with :func:`clothoid_mass_matrix` of the same order);
+    analytic in q and the rates (complex-step safe)."""
+    kin = kin if kin is not None else cl.kinematics(clothoid)
+    S, N = clothoid.lengths.shape
+    rot = np.asarray(inertia.rotational, dtype=np.float64)
+    T = 0.0
+    for w, cdot, om, *_ in _clothoid_point_motion(clothoid, kin, rates, order):
+        T = T + 0.5 * w * (inertia.linear * np.sum(cdot * cdot, axis=1) + (om * om) @ rot)
+    return np.sum(np.reshape(T, (S, N)), axis=1)
+
+
+def clothoid_momentum(clothoid, inertia: Inertia, rates, kin=None, order: int = 4) -> np.ndarray:
+    """dT/dv = M v, (S, N + 1, 3), from the point velocities (O(N) per point, no M): sum over the Gauss points of
+    w (rhoS J^T Cdot + Jw^T R diag(rot) R^T w)."""
+    kin = kin if kin is not None else cl.kinematics(clothoid)
+    S, N = clothoid.lengths.shape
+    rot = np.asarray(inertia.rotational, dtype=np.float64)
+    out = 0.0
+    for w, cdot, om, J, Jw, R in _clothoid_point_motion(clothoid, kin, rates, order):
+        tau = np.einsum("pab,pb->pa", R, om * rot)  # world angular momentum density
+        part = (np.einsum("pnac,pa->pnc", J, inertia.linear * cdot) + np.einsum("pnac,pa->pnc", Jw, tau))
+        out = out + (w[:, None, None] * part).reshape(S, N, N + 1, 3).sum(axis=1)
+    return out
+
+
+def clothoid_velocity_terms(clothoid, inertia: Inertia, rates, kin=None, order: int = 4) -> np.ndarray:
+    """A(q, qd) = Mdot qd - dT/dq of Super Space Clothoids (static root), (S, N + 1, 3), from Lagrange's equations
+    (M qdd + A = forces with T = 1/2 qd^T M(q) qd):
+
+        Mdot qd = d/de [M(q + e qd) qd]    (one complex step of :func:`clothoid_momentum` along qd),
+        dT/dq_j                            (one complex step of :func:`clothoid_kinetic_energy` per dof, batched
+                                            over copies of each strand).
+
+    Same Gauss points as :func:`clothoid_mass_matrix`, so A is exactly the velocity term of that M.  O(N^3) per
+    strand (the gradient: 3 (N + 1) energies of O(N^2)); zero at rest."""
+    kin = kin if kin is not None else cl.kinematics(clothoid)
+    S, N = clothoid.lengths.shape
+    eps = CLOTHOID_COMPLEX_STEP
+    v = np.asarray(rates, dtype=np.float64).reshape(S, N + 1, 3) * clothoid.node_mask[..., None]
+    moved = clothoid.with_curvatures(clothoid.curvatures + 1j * eps * v)
+    mdot = clothoid_momentum(moved, inertia, v, cl.kinematics(moved), order).imag / eps
+    # dT/dq by copies of each strand, one per real dof
+    sid, col = np.nonzero(np.arange(3 * (N + 1))[None, :] // 3 <= clothoid.n_elements[:, None])
+    q = clothoid.curvatures[sid].astype(np.complex128).reshape(len(sid), -1)
+    q[np.arange(len(sid)), col] += 1j * eps
+    copies = cl.SuperClothoid(clothoid.root_positions[sid], clothoid.root_frames[sid], clothoid.lengths[sid],
+                              q.reshape(len(sid), N + 1, 3), clothoid.n_elements[sid])
+    energy = clothoid_kinetic_energy(copies, inertia, v[sid], _copies_kinematics(copies, kin, sid, col // 3), order)
+    grad = np.zeros((S, 3 * (N + 1)))
+    grad[sid, col] = energy.imag / eps
+    return (mdot - grad.reshape(S, N + 1, 3)) * clothoid.node_mask[..., None]
+
+
+def _copies_kinematics(copies, kin, sid, node):
+    """Kinematics of copies of strands ``sid`` whose node ``node`` was perturbed (complex step): only the two
+    elements touching the node are propagated again (as clothoid.gravity_force_jacobian does), the others copied
+    from the real ``kin``, then the chain."""
+    m = len(sid)
+    N = copies.max_elements
+    a, b = copies.starts_and_slopes()
+    arrays = [np.ascontiguousarray(getattr(kin, name)[sid], dtype=np.complex128)
+              for name in ("Q", "p", "P", "Mphi", "MX", "MZ")]
+    rows = np.repeat(np.arange(m, dtype=np.int64), 2)
+    elems = np.stack([node - 1, node], axis=1).ravel().astype(np.int64)
+    cl._element_subset_kernel(np.ascontiguousarray(copies.lengths), a, b, rows, elems, *arrays,
+                              *cl._scratch(np.complex128))
+    Q, p, P, Mphi, MX, MZ = arrays
+    C = np.empty((m, N + 1, 3), dtype=np.complex128)
+    R = np.empty((m, N + 1, 3, 3), dtype=np.complex128)
+    cl._chain(np.ascontiguousarray(copies.root_positions, dtype=np.complex128),
+              np.ascontiguousarray(copies.root_frames, dtype=np.complex128), Q, p, C, R)
+    return cl.Kinematics(copies, C, R, Q, p, P, Mphi, MX, MZ, a, b, None)
