@@ -220,7 +220,7 @@ def markdown(r: dict) -> str:
         "|---|---|---|---|---|---|",
     ]
     for k, (s, b) in enumerate(zip(r["serial"], r["batch"])):
-        lines.append(f"| {k + 1}: serial loop, one process (`invert_one` per style, 1 BLAS/numba thread) | "
+        lines.append(f"| {k + 1}: serial loop, one process (`invert_one` per groom, 1 BLAS/numba thread) | "
                      f"{s['wall_s']:.1f} | {s['cpu_s']:.1f} | 1.00x | {s['task_s']:.1f} | {s['peak_rss_mib']:.0f} MiB |")
         lines.append(f"| {k + 1}: `groom batch --workers {r['workers']}` (LocalCluster, 1 thread per worker) | "
                      f"{b['wall_s']:.1f} | {b['cpu_s']:.1f} | {s['wall_s'] / b['wall_s']:.2f}x | {b['task_s']:.1f} | "
@@ -235,8 +235,8 @@ def markdown(r: dict) -> str:
         "",
         f"Best walls: speed-up {r['speed_up_best']:.2f}x. Statuses: serial {r['serial'][0]['counts']}, batch "
         f"{b0['counts']} (exit code {b0['exit_code']}); tasks per worker {b0['tasks_per_worker']}.",
-        f"Agreement (run 1): {a['same_status']}/{a['styles']} styles with the same status; rest curvatures of "
-        f"{a['compared']} styles compared, max difference {a['max_rel_diff']:.1e} relative to the largest.",
+        f"Agreement (run 1): {a['same_status']}/{a['styles']} grooms with the same status; rest curvatures of "
+        f"{a['compared']} grooms compared, max difference {a['max_rel_diff']:.1e} relative to the largest.",
         "",
     ]
     return "\n".join(lines)
