@@ -108,8 +108,8 @@ class SimulationParams:
     max_iterations: int = 2000
     refresh_warm_start: bool = True  # one sweep from an accepted warm start (solve_contacts)
     keep_step_corrections: bool = True  # reuse a modified strand's step-matrix correction (factor_step_matrix)
-    # Super Space Clothoids: compute their velocity terms A (dyn.clothoid_velocity_terms: exact, but O(N^3) per strand
-    # and step by complex steps, 0.2-0.8 s per step on 5-strand USC styles); off: dropped (exact at rest)
+    # Super Space Clothoids: compute their velocity terms A (dyn.clothoid_velocity_terms: exact, by complex steps,
+    # 80-170 ms per step on 5-strand USC styles, 2-4x M and dF/dq); off: dropped (exact at rest)
     clothoid_velocity_terms: bool = False
 
     def __post_init__(self):

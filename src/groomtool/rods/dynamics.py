@@ -565,11 +565,11 @@ def clothoid_velocity_terms(clothoid, inertia: Inertia, rates, kin=None, order: 
     (M qdd + A = forces with T = 1/2 qd^T M(q) qd):
 
         Mdot qd = d/de [M(q + e qd) qd]    (one complex step of :func:`clothoid_momentum` along qd),
-        dT/dq_j                            (one complex step of :func:`clothoid_kinetic_energy` per dof, batched
-                                            over copies of each strand).
+        dT/dq_j                            (one complex step of the kinetic energy per dof, batched over copies of
+                                            each strand: :func:`_clothoid_energy_gradient`, O(N) per copy).
 
-    Same Gauss points as :func:`clothoid_mass_matrix`, so A is exactly the velocity term of that M.  O(N^3) per
-    strand (the gradient: 3 (N + 1) energies of O(N^2)); zero at rest."""
+    Same Gauss points as :func:`clothoid_mass_matrix`, so A is exactly the velocity term of that M.  O(N^2) per
+    strand; zero at rest."""
     kin = kin if kin is not None else cl.kinematics(clothoid)
     S, N = clothoid.lengths.shape
     eps = CLOTHOID_COMPLEX_STEP
@@ -582,7 +582,8 @@ def clothoid_velocity_terms(clothoid, inertia: Inertia, rates, kin=None, order: 
     q[np.arange(len(sid)), col] += 1j * eps
     copies = cl.SuperClothoid(clothoid.root_positions[sid], clothoid.root_frames[sid], clothoid.lengths[sid],
                               q.reshape(len(sid), N + 1, 3), clothoid.n_elements[sid])
-    energy = clothoid_kinetic_energy(copies, inertia, v[sid], _copies_kinematics(copies, kin, sid, col // 3), order)
+    energy = _clothoid_energy_gradient(clothoid, inertia, v, kin, sid, col, copies,
+                                       _copies_kinematics(copies, kin, sid, col // 3), order)
     grad = np.zeros((S, 3 * (N + 1)))
     grad[sid, col] = energy.imag / eps
     return (mdot - grad.reshape(S, N + 1, 3)) * clothoid.node_mask[..., None]
@@ -607,3 +608,49 @@ def _copies_kinematics(copies, kin, sid, node):
     cl._chain(np.ascontiguousarray(copies.root_positions, dtype=np.complex128),
               np.ascontiguousarray(copies.root_frames, dtype=np.complex128), Q, p, C, R)
     return cl.Kinematics(copies, C, R, Q, p, P, Mphi, MX, MZ, a, b, None)
+
+
+def _clothoid_energy_gradient(clothoid, inertia: Inertia, v, kin, sid, col, copies, ckin, order: int):
+    """dT/dq by the complex step on copies (strand sid, dof col perturbed), O(N) per copy: the in-element partial
+    series at each Gauss point depend only on their own element, so they are taken from the real configuration
+    except in the two elements beside the perturbed node (recomputed in complex arithmetic); the upstream part of
+    every point velocity is a prefix sum over the copy's elements (node_jacobian_terms).  Returns T per copy."""
+    S, N = clothoid.lengths.shape
+    m = len(sid)
+    node = col // 3
+    xg, wg = np.polynomial.legendre.leggauss(order)
+    rot = np.asarray(inertia.rotational, dtype=np.float64)
+    vc = v[sid]  # (m, N + 1, 3)
+    Ts, Te, Bs, Be = cl.node_jacobian_terms(ckin)  # (m, N, 3, 3) complex
+    beta = np.einsum("cnab,cnb->cna", Bs, vc[:, :-1]) + np.einsum("cnab,cnb->cna", Be, vc[:, 1:])
+    omega = np.einsum("cnab,cnb->cna", Ts, vc[:, :-1]) + np.einsum("cnab,cnb->cna", Te, vc[:, 1:])
+    mask = clothoid.element_mask[sid][..., None]
+    Bsum = np.cumsum(beta * mask, axis=1) - beta * mask  # sum over k < e
+    Wsum = np.cumsum(omega * mask, axis=1) - omega * mask
+    lengths = clothoid.lengths[sid]  # (m, N)
+    strand_all = np.repeat(np.arange(S), N)
+    elem_all = np.tile(np.arange(N), S)
+    T = np.zeros(m, dtype=np.complex128)
+    rows = np.repeat(np.arange(m), 2)
+    near = np.stack([node - 1, node], axis=1).ravel()
+    ok = (near >= 0) & (near < clothoid.n_elements[sid][rows])
+    rows, near = rows[ok], near[ok]
+    for xq, wq in zip(0.5 * (xg + 1.0), 0.5 * wg):
+        t_all = xq * clothoid.lengths.ravel()
+        Phi, p, Mphi, MX = (x.reshape((S, N) + x.shape[1:])[sid].astype(np.complex128)
+                            for x in cl._partial(clothoid, kin, strand_all, elem_all, t_all))
+        if len(rows):
+            Phi_c, p_c, Mphi_c, MX_c = cl._partial(copies, ckin, rows, near, xq * lengths[rows, near])
+            Phi[rows, near], p[rows, near], Mphi[rows, near], MX[rows, near] = Phi_c, p_c, Mphi_c, MX_c
+        As, Ae = cl._hat_split(Mphi, lengths)
+        Ys, Ye = cl._hat_split(MX[:, :, :2], lengths)
+        Re = ckin.R[:, :-1]
+        x = ckin.C[:, :-1] + np.einsum("cnab,cnb->cna", Re, p)
+        ang = np.einsum("cnab,cnb->cna", As, vc[:, :-1]) + np.einsum("cnab,cnb->cna", Ae, vc[:, 1:])
+        lin = np.einsum("cnab,cnb->cna", Ys, vc[:, :-1]) + np.einsum("cnab,cnb->cna", Ye, vc[:, 1:]) - np.cross(p, ang)
+        cdot = Bsum - np.cross(x, Wsum) + np.einsum("cnab,cnb->cna", Re, lin)
+        om = Wsum + np.einsum("cnab,cnb->cna", Re, ang)
+        om_mat = np.einsum("cnba,cnb->cna", Re @ Phi, om)
+        dens = inertia.linear * np.sum(cdot * cdot, axis=-1) + (om_mat * om_mat) @ rot
+        T = T + 0.5 * np.sum(wq * lengths * dens * mask[..., 0], axis=1)
+    return T
