@@ -246,7 +246,7 @@ def example_markdown(example, before=None) -> list[str]:
              + (f"'before' is {before.get('code', 'the previous code')}, " if before else "")
              + f"'after' {example.get('code', 'this code')}, measured on the same machine under the same load.", "",
              "Command: `python bench/bench_simulate.py --keep-styles --keep-big --example-dir example/out "
-             "--example-steps 6 --example-before BEFORE.json --example-label LABEL` (BEFORE.json: example_stages "
+             f"--example-steps {example['steps']} --example-before BEFORE.json --example-label LABEL` (BEFORE.json: example_stages "
              "run on the previous code).", "",
              "| code | run | s/step mean (median) | contacts | GS sweeps per step | stages (s/step) |", "|---|---|---|---|---|---|"]
     for label, ex in (("before", before), ("after", example)):
