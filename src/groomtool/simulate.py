@@ -480,14 +480,14 @@ class Simulator:
             res = solve_contact_problem(problem, law="coulomb", method="gs", tol=0.0, max_iter=1, r0=r,
                                         scale=scale)
             r1 = np.asarray(res.r)
-            err1 = error(r1)
+            err1 = float(res.residual)  # the solver's own residual of r1 is error(r1): the same u, mu, rho, scale
             if err1 <= p.solver_tolerance:
                 r, err, iterations, status = r1, err1, 1, "warm_start_swept"
         if not err <= p.solver_tolerance:
             res = solve_contact_problem(problem, law="coulomb", method=p.solver, tol=p.solver_tolerance,
                                         max_iter=p.max_iterations, r0=r, scale=scale)
             r, iterations, status = np.asarray(res.r), int(res.iterations), str(res.status)
-            err = error(r)
+            err = float(res.residual)
         if self.clothoid:
             r, err, status = _polish_sticking(problem, r, err, error, status)
         self._time("solve", t0)
