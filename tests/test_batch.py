@@ -365,3 +365,12 @@ def test_alembic_is_a_batch_output_format(client, data, tmp_path):
     with pytest.raises(GroomError, match="unknown output format"):
         batch.run_batch(inputs(data, ["g0"]), out, head=data / "head.obj", params=PARAMS, client=client,
                         quiet=True, formats=("npz", "fbx"))
+
+
+def test_clothoid_batches_refuse_the_exporters_up_front(data, tmp_path):
+    """--model clothoid with --format usd (the exporters take Super-Helices only): one clear error before any
+    cluster starts or any groom is computed, as groom invert does."""
+    with pytest.raises(GroomError, match="not available with --model clothoid"):
+        batch.run_batch(inputs(data, ["g0"]), tmp_path / "out", head=data / "head.obj",
+                        params={**PARAMS, "model": "clothoid"}, quiet=True, formats=("npz", "json", "usd"))
+    assert not (tmp_path / "out" / "g0").exists()
