@@ -248,6 +248,27 @@ class KillMidWrite(distributed.WorkerPlugin):
         results.write_json = self.original
 
 
+def test_alembic_is_a_batch_output_format(client, data, tmp_path):
+    """--format abc is accepted like usd/vtp/hair: groom.abc in the set; without the optional alembic3d
+    the batch says so once, before any groom is computed."""
+    import importlib.util
+
+    out = tmp_path / "out"
+    if importlib.util.find_spec("alembic3d") is not None:
+        summary = batch.run_batch(inputs(data, ["g0"]), out, head=data / "head.obj", params=PARAMS, client=client,
+                                  quiet=True, formats=("npz", "json", "abc"))
+        assert summary.rows[0]["status"] == "ok", summary.rows
+        assert (out / "g0" / "groom.abc").is_file()
+    else:
+        with pytest.raises(GroomError, match="alembic3d"):
+            batch.run_batch(inputs(data, ["g0"]), out, head=data / "head.obj", params=PARAMS, client=client,
+                            quiet=True, formats=("npz", "json", "abc"))
+        assert not (out / "g0").exists()
+    with pytest.raises(GroomError, match="unknown output format"):
+        batch.run_batch(inputs(data, ["g0"]), out, head=data / "head.obj", params=PARAMS, client=client,
+                        quiet=True, formats=("npz", "fbx"))
+
+
 def test_a_worker_killed_mid_write_is_retried_and_nothing_is_half_written(client, data, tmp_path):
     out = tmp_path / "out"
     marker = tmp_path / "killed"
@@ -344,27 +365,6 @@ def test_a_worker_that_always_dies_is_reported_after_the_retries(client, data, t
     assert summary.exit_code == 1
     assert not (out / "g2").exists()
     assert_nothing_half_written(out)
-
-
-def test_alembic_is_a_batch_output_format(client, data, tmp_path):
-    """--format abc is accepted like usd/vtp/hair: groom.abc in the set; without the optional alembic3d
-    the batch says so once, before any groom is computed."""
-    import importlib.util
-
-    out = tmp_path / "out"
-    if importlib.util.find_spec("alembic3d") is not None:
-        summary = batch.run_batch(inputs(data, ["g0"]), out, head=data / "head.obj", params=PARAMS, client=client,
-                                  quiet=True, formats=("npz", "json", "abc"))
-        assert summary.rows[0]["status"] == "ok", summary.rows
-        assert (out / "g0" / "groom.abc").is_file()
-    else:
-        with pytest.raises(GroomError, match="alembic3d"):
-            batch.run_batch(inputs(data, ["g0"]), out, head=data / "head.obj", params=PARAMS, client=client,
-                            quiet=True, formats=("npz", "json", "abc"))
-        assert not (out / "g0").exists()
-    with pytest.raises(GroomError, match="unknown output format"):
-        batch.run_batch(inputs(data, ["g0"]), out, head=data / "head.obj", params=PARAMS, client=client,
-                        quiet=True, formats=("npz", "fbx"))
 
 
 def test_clothoid_batches_refuse_the_exporters_up_front(data, tmp_path):
