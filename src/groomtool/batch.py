@@ -296,10 +296,13 @@ def plan_tasks(costs, workers: int, tail: int = 2) -> list[list[int]]:
 
 
 def _worker_count(client, default: int) -> int:
+    """The workers the scheduler has now, or the requested count where it has none yet (a cluster whose
+    workers are still joining) or cannot say."""
     try:
-        return max(len(client.scheduler_info().get("workers", {})), 1)
-    except Exception:  # a client that cannot say (a scheduler still starting): the requested count
-        return max(int(default), 1)
+        n = len(client.scheduler_info().get("workers", {}))
+    except Exception:
+        n = 0
+    return n if n > 0 else max(int(default), 1)
 
 
 def skipped_row(path, outdir) -> dict:
