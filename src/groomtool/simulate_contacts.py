@@ -251,7 +251,7 @@ class ContactTracker:
         """(head, strand) detection margins per strand from its largest node speed (S,): 1.5 h |v|max,s,
         capped at 100 r_c and 2 r_c (or the params').  Per strand, not the groom's fastest: two strands
         approach by at most h (|v_a| + |v_b|) in a step, within the threshold 2 r_c + m_a + m_b (a fast
-        strand does not widen the search of the slow ones, which on a sagging groom cut detection ~3x)."""
+        strand does not widen the search of the slow ones: ~2x less detection on a sagging groom)."""
         p = self.params
         reach = 1.5 * np.asarray(speeds, dtype=np.float64) * p.dt
         head_cap = 100.0 * self.radius if p.head_margin is None else p.head_margin
