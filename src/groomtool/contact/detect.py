@@ -858,11 +858,11 @@ def detect_strand_contacts(points, offsets, arc, radius, *, min_self_arc: float 
     for self-contacts.
     """
     points, offsets, arc = check_strands(points, offsets, arc)
-    radius_arg = radius
-    radius = float(np.max(radius)) if np.ndim(radius) else radius
+    radii = radius  # a number or one per strand, for the pair thresholds
+    radius = float(np.max(radius, initial=0.0)) if np.ndim(radius) else radius  # the largest, for the rest
     merge_arc = 4.0 * radius if merge_arc is None else float(merge_arc)
     t0 = time.perf_counter()
-    pairs = close_segment_pairs(points, offsets, arc, radius_arg, min_self_arc=min_self_arc, cell_size=cell_size)
+    pairs = close_segment_pairs(points, offsets, arc, radii, min_self_arc=min_self_arc, cell_size=cell_size)
     seg_v0, seg_strand = strand_segments(offsets)
     t1 = time.perf_counter()
 
