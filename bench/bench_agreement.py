@@ -97,7 +97,7 @@ def solve(problem, cp, method: str, params: InversionParams, repeat: int, **opti
     times = []
     for _ in range(max(1, repeat)):
         res = solve_contact_problem(cp, law="soc", method=method, tol=params.solver_tolerance,
-                                    max_iter=params.max_iterations, **options)
+                                    max_iter=params.max_sweeps, **options)
         times.append(res.time_s)
     forces = np.asarray(res.r).reshape(-1, 3) * problem.f_scale
     return {
@@ -450,7 +450,7 @@ def main() -> None:
         "load_start": list(load_start), "load_end": list(os.getloadavg()),
         "tolerance_m": params.tolerance, "gamma": params.gamma, "guess": params.guess,
         "friction": params.material.friction, "solver_tolerance": params.solver_tolerance,
-        "max_iterations": params.max_iterations, "repeat": args.repeat, "clarabel_max": args.clarabel_max,
+        "max_iterations": params.max_sweeps, "repeat": args.repeat, "clarabel_max": args.clarabel_max,
         "run_s": time.perf_counter() - t_start, "data": str(args.data),
     }
     meta["notes"] = notes(series, params)

@@ -63,7 +63,7 @@ def run_child(spec: dict) -> dict:
     groom, head, snap = _load(spec["groom"])
     load_s = time.perf_counter() - t0
     extra = {k: spec[k] for k in ("q0_tolerance", "strict") if k in spec}
-    params = InversionParams(contacts=spec["mode"], snap_roots=snap, max_iterations=spec["max_sweeps"],
+    params = InversionParams(contacts=spec["mode"], snap_roots=snap, max_sweeps=spec["max_sweeps"],
                              solver=spec.get("solver", "auto"), **extra)
     c1 = time.process_time()
     out: dict = {"spec": spec, "load_s": load_s, "strands": groom.n_strands}

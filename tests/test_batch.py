@@ -145,7 +145,7 @@ def test_resume_skips_complete_output_sets_and_reruns_the_others(client, data, t
 
 def test_solver_failure_is_reported_with_exit_code_2(client, data, tmp_path):
     out = tmp_path / "out"
-    params = {**PARAMS, "solver": "gs", "max_iterations": 1, "solver_tolerance": 1e-14}
+    params = {**PARAMS, "solver": "gs", "max_sweeps": 1, "solver_tolerance": 1e-14}
     if "strict" in {f.name for f in dataclasses.fields(InversionParams)}:
         params["strict"] = True  # an unconverged but feasible solve is refused, not written
     summary = batch.run_batch(inputs(data, ["g0"]), out, head=data / "head.obj", params=params, client=client,

@@ -6,7 +6,9 @@
   equilibrium; a strand touching nothing gets r = 0 and the isolated rest curvatures.
 """
 
+import dataclasses
 import re
+import warnings
 
 import cvxpy as cp
 import numpy as np
@@ -231,7 +233,7 @@ def test_auto_falls_back_to_clarabel_when_gauss_seidel_does_not_converge(draped,
     groom, ref = draped
     assert ref.report["solve"]["redundant_strand_fraction"] > 0.25
     monkeypatch.setattr(sys.modules["groomtool.invert"], "redundant_strand_fraction", lambda helix, contacts: 0.0)
-    res = invert_groom(groom, head=sphere, params=_params(solver="auto", max_iterations=1))
+    res = invert_groom(groom, head=sphere, params=_params(solver="auto", max_sweeps=1))
     solve = res.report["solve"]
     assert solve["redundant_strand_fraction"] == 0.0
     assert solve["fallback_from"]["solver"] == "gs" and solve["fallback_from"]["iterations"] == 1
@@ -259,7 +261,7 @@ def test_gauss_seidel_gives_up_early_on_dense_contacts_and_says_what_to_do(drape
     groom, _ = draped
     monkeypatch.setattr(sys.modules["groomtool.inverse_problem"], "GS_GIVE_UP", 0.05)
     with pytest.raises(SolverFailure) as info:
-        invert_groom(groom, head=sphere, params=_params(solver="gs", max_iterations=1600, strict=True))
+        invert_groom(groom, head=sphere, params=_params(solver="gs", max_sweeps=1600, strict=True))
     exc = info.value
     solve = exc.report["solve"]
     assert exc.status == "stalled" and solve["status"] == "stalled"
@@ -277,7 +279,7 @@ def test_unconverged_solve_keeps_its_feasible_forces_with_a_certified_bound(drap
 
     groom, ref = draped
     with pytest.warns(FeasibleSolveWarning, match=r"stopped \(max_iter\).*exact equilibrium.*certified within") as seen:
-        res = invert_groom(groom, head=sphere, params=_params(solver="gs", max_iterations=200))
+        res = invert_groom(groom, head=sphere, params=_params(solver="gs", max_sweeps=200))
     # one warning for the result, not one per stabilisation round
     assert sum(issubclass(w.category, FeasibleSolveWarning) for w in seen) == 1
     solve = res.report["solve"]
@@ -299,7 +301,7 @@ def test_an_unconverged_solve_warns_once_over_the_stabilisation_rounds(draped, s
 
     groom, _ = draped
     with pytest.warns(FeasibleSolveWarning) as seen:
-        res = invert_groom(groom, head=sphere, params=_params(solver="gs", max_iterations=200,
+        res = invert_groom(groom, head=sphere, params=_params(solver="gs", max_sweeps=200,
                                                                  stabilize="stiffness"))
     assert res.report["stability"]["stabilization"]["rounds"] >= 1  # the situation this test is about
     assert sum(issubclass(w.category, FeasibleSolveWarning) for w in seen) == 1
@@ -332,6 +334,23 @@ def test_q0_tolerance_stops_gauss_seidel_once_the_rest_curvatures_are_certified(
     true = np.linalg.norm(res.rest_curvatures - ref.rest_curvatures) / np.linalg.norm(ref.rest_curvatures)
     assert true <= solve["q0_error_bound"] + ref.report["solve"]["q0_error_bound"]
     assert res.report["parameters"]["q0_tolerance"] == 1e-4
+
+
+def test_max_iterations_is_a_deprecated_alias_of_max_sweeps():
+    with pytest.warns(DeprecationWarning, match="max_sweeps"):
+        params = InversionParams(max_iterations=7)
+    assert params.max_sweeps == 7 and params == InversionParams(max_sweeps=7)
+    with pytest.warns(DeprecationWarning, match="max_sweeps"):
+        assert params.max_iterations == 7
+    with pytest.raises(AttributeError):
+        params.max_iterations = 3
+    with pytest.raises(ValueError, match="max_sweeps"):
+        InversionParams(max_sweeps=0)
+    with pytest.raises(TypeError), pytest.warns(DeprecationWarning):
+        InversionParams(max_sweeps=7, max_iterations=7)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a copy with a new budget: no warning, and the new budget kept
+        assert dataclasses.replace(params, max_sweeps=9).max_sweeps == 9
 
 
 def test_failure_message_of_a_diverged_solve_has_no_tolerance_advice():
@@ -372,7 +391,7 @@ def test_progress_shows_the_certified_bound_and_sweeps_to_go(draped, sphere, cap
     """The contact solve's progress bar shows the residual, the certified q0 bound with its target, and the
     sweeps still needed at the bound's own rate."""
     groom, _ = draped
-    invert_groom(groom, head=sphere, params=_params(solver="gs", q0_tolerance=1e-6, max_iterations=600),
+    invert_groom(groom, head=sphere, params=_params(solver="gs", q0_tolerance=1e-6, max_sweeps=600),
                  quiet=False)
     err = capsys.readouterr().err
     assert "q0 within" in err and "(target 1e-06" in err and "more sweeps at this rate" in err

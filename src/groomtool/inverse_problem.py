@@ -339,7 +339,7 @@ def rest_curvature_error_bound(problem: InverseProblem, cp, r, u=None, line_sear
 def solve_inverse_problem(problem: InverseProblem, helix: sh.SuperHelix, params, quiet: bool = True,
                           redundant_fraction: float = 1.0, initial_forces=None) -> dict:
     """Solve the scaled SOCQP with the chosen solver; forces returned in newtons (m, 3).  ``params``: the
-    InversionParams (solver, solver_tolerance, max_iterations, q0_tolerance).  The progress bar counts
+    InversionParams (solver, solver_tolerance, max_sweeps, q0_tolerance).  The progress bar counts
     Gauss-Seidel sweeps (clarabel's polish included) and shows the residual.  ``auto``: choose_solver; if
     its Gauss-Seidel does not converge on at most 10,000 contacts, clarabel takes over (report:
     fallback_from).  ``initial_forces`` (m, 3) in newtons, e.g. the previous stabilisation round's:
@@ -353,7 +353,7 @@ def solve_inverse_problem(problem: InverseProblem, helix: sh.SuperHelix, params,
     bounded = problem.gamma > 0 and problem.q0_free is not None
 
     def run(method):
-        with progress(params.max_iterations, f"contact solve ({method}, {m:,} contacts)", quiet,
+        with progress(params.max_sweeps, f"contact solve ({method}, {m:,} contacts)", quiet,
                       unit="sweep", budget=True) as bar:
             shown = {"residual": math.nan, "q0": math.nan, "sweeps": 0, "history": []}
 
@@ -385,7 +385,7 @@ def solve_inverse_problem(problem: InverseProblem, helix: sh.SuperHelix, params,
                 return params.q0_tolerance is not None and shown["q0"] <= params.q0_tolerance
 
             # the sweep budget (and giving up on it early) is Gauss-Seidel's; clarabel keeps its own iteration limit
-            gs_only = {} if method == "clarabel" else {"max_iter": params.max_iterations, "give_up": GS_GIVE_UP}
+            gs_only = {} if method == "clarabel" else {"max_iter": params.max_sweeps, "give_up": GS_GIVE_UP}
             if method != "clarabel" and initial_forces is not None:
                 gs_only["r0"] = np.asarray(initial_forces, dtype=np.float64).reshape(-1) / problem.f_scale
             if method != "clarabel" and bounded and (params.q0_tolerance is not None or not quiet):

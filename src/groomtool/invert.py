@@ -8,6 +8,7 @@ the stiffening rule stabilize.py.
 
 from __future__ import annotations
 
+import functools
 import math
 import warnings
 from dataclasses import dataclass, field
@@ -64,7 +65,7 @@ class InversionParams:
     gamma: float = 1e-4
     solver: str = "auto"  # clarabel | gs | auto
     solver_tolerance: float = 1e-8
-    max_iterations: int = 5000
+    max_sweeps: int = 5000  # the Gauss-Seidel sweep budget (--max-sweeps; clarabel keeps its own iteration limit)
     q0_tolerance: float | None = Q0_TOLERANCE  # stop once the certified relative rest-curvature error is below
     #                                            (None: off; docs/solvers.md section 11)
     strict: bool = False  # an unconverged solve raises SolverFailure instead of returning its feasible forces
@@ -94,8 +95,8 @@ class InversionParams:
             raise ValueError(f"rod_segments must be >= 2, got {self.rod_segments}")
         if not (self.solver_tolerance > 0):
             raise ValueError(f"solver_tolerance must be > 0, got {self.solver_tolerance}")
-        if self.max_iterations < 1:
-            raise ValueError(f"max_iterations must be >= 1, got {self.max_iterations}")
+        if self.max_sweeps < 1:
+            raise ValueError(f"max_sweeps must be >= 1, got {self.max_sweeps}")
         if self.q0_tolerance is not None and not (self.q0_tolerance > 0):
             raise ValueError(f"q0_tolerance must be > 0 (or None), got {self.q0_tolerance}")
         if self.wisp_radius is not None:
@@ -113,6 +114,32 @@ class InversionParams:
             raise ValueError(f"friction margin must be in [0, 1), got {self.friction_margin}")
         if not (self.max_stiffness_factor >= 1.0 and np.isfinite(self.max_stiffness_factor)):
             raise ValueError(f"max stiffness factor must be >= 1, got {self.max_stiffness_factor}")
+
+
+_dataclass_init = InversionParams.__init__
+
+
+@functools.wraps(_dataclass_init)
+def _init_with_deprecated_max_iterations(self, *args, max_iterations=None, **kwargs):
+    """The dataclass's __init__, which also takes ``max_iterations``, the deprecated name of ``max_sweeps``
+    (a wrapper rather than an InitVar: dataclasses.replace would pass an InitVar on, over a new max_sweeps)."""
+    if max_iterations is not None:
+        warnings.warn("InversionParams(max_iterations=...) is deprecated: use max_sweeps=...", DeprecationWarning,
+                      stacklevel=2)
+        if "max_sweeps" in kwargs:
+            raise TypeError("give max_sweeps, not both max_sweeps and its deprecated name max_iterations")
+        kwargs["max_sweeps"] = max_iterations
+    _dataclass_init(self, *args, **kwargs)
+
+
+def _deprecated_max_iterations(self) -> int:
+    """Deprecated, read-only: the sweep budget is ``max_sweeps``."""
+    warnings.warn("InversionParams.max_iterations is deprecated: use max_sweeps", DeprecationWarning, stacklevel=2)
+    return self.max_sweeps
+
+
+InversionParams.__init__ = _init_with_deprecated_max_iterations
+InversionParams.max_iterations = property(_deprecated_max_iterations)
 
 
 # --------------------------------------------------------------------------- the whole job
@@ -469,7 +496,7 @@ def _failure_message(solve: dict, params: InversionParams) -> str:
            f"{solve['residual']:.3e} after {solve['iterations']} iterations (target {params.solver_tolerance:.0e})")
     if solve.get("projected_sweeps") is not None:
         msg += (f"; at its rate it would need about {solve['projected_sweeps']:,.0f} sweeps (budget "
-                f"{params.max_iterations:,})")
+                f"{params.max_sweeps:,})")
     if solve.get("redundant_strand_fraction", 0.0) > AUTO_GS_MAX_REDUNDANT:
         msg += (f". The contacts are dense ({100 * solve['redundant_strand_fraction']:.0f} % of the strands that "
                 "carry contacts have more contact rows than dofs; docs/solvers.md section 9)")

@@ -104,7 +104,7 @@ def invert_params(args, scale):
         relative_tolerance=args.relative_tolerance, contacts=args.contacts,
         contact_radius=None if args.contact_radius is None else args.contact_radius * scale,
         wisp_radius=None if args.wisp_radius is None else args.wisp_radius * scale,
-        guess=args.guess, solver=args.solver, solver_tolerance=args.solver_tolerance, max_iterations=args.max_sweeps,
+        guess=args.guess, solver=args.solver, solver_tolerance=args.solver_tolerance, max_sweeps=args.max_sweeps,
         q0_tolerance=args.q0_tolerance or None, strict=args.strict,
         snap_roots=args.snap_roots, rod_segments=args.rod_segments, stabilize=args.stabilize,
         model=getattr(args, "model", "superhelix"),
