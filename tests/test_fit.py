@@ -22,14 +22,13 @@ from groomtool.fit import error as fit_error
 from groomtool.fit import helix as fit_helix
 from groomtool.fit import kernels as fit_kernels
 from groomtool.fit.cohelicity import constraint_residuals
-from groomtool.fit.error import closest_distances
 from groomtool.fit.helix import helix_chord, helix_residuals, rotate
 from groomtool.fit.sampling import PolylineCurves, drop_repeated_vertices, ensure_four_vertices, vertex_arc_lengths
 from groomtool.fit.state import assemble, root_frames
 from groomtool.groom import Groom, GroomError
 from groomtool.rods import superhelix as sh
 from reference import fit as fit_reference
-from reference.fit import cohelicity_defect, curve_table, evaluate_table
+from reference.fit import closest_distances, cohelicity_defect, curve_table, evaluate_table
 
 
 def unit(v):

@@ -6,12 +6,11 @@ from test_fit import libm_numpy
 
 from groomtool.fit import cohelicity, fitter, sampling
 from groomtool.fit import fit_groom
-from groomtool.fit.error import closest_distances
 from groomtool.fit.sampling import vertex_arc_lengths
 from groomtool.groom import Groom
 from groomtool.io import read_data
 from reference import fit as fit_reference
-from reference.fit import curve_table
+from reference.fit import closest_distances, curve_table
 
 
 

@@ -6,16 +6,18 @@ kernels call; the frames to 1e-13, as numpy's 3x3 products go through BLAS).
 helix: :func:`solve_helix_numpy`, :func:`solve_chain_numpy` (and the helpers ``_unit``, ``_F``,
 :func:`cohelicity_defect`); state: :func:`assemble_numpy`, :func:`curve_table` (the CurveTable of any
 SuperHelix); error: :func:`closest_distances_numpy`, :func:`strand_errors_numpy`,
-:func:`evaluate_table`; sampling: :func:`drop_repeated_vertices_numpy`,
-:func:`vertex_arc_lengths_numpy`, :func:`evaluate_numpy` (``PolylineCurves.evaluate``); cohelicity:
+:func:`evaluate_table`, and :func:`closest_distances` (the package's closest-point kernel ``_closest_s``
+over any points, with :func:`locate`: the tests' entry to the kernel); sampling:
+:func:`drop_repeated_vertices_numpy`, :func:`vertex_arc_lengths_numpy`, :func:`evaluate_numpy` (``PolylineCurves.evaluate``); cohelicity:
 :func:`project_numpy`.
 """
 
 from __future__ import annotations
 
 import numpy as np
+from numba import njit
 
-from groomtool.fit.error import CHUNK, PRECHECK_STRIDE, locate
+from groomtool.fit.error import PRECHECK_STRIDE, _closest_s, _element_arrays
 from groomtool.fit.helix import _TINY, ANTIPODAL_M, FLAT_D, STRAIGHT_D, HelixSolution, helix_chord
 from groomtool.fit.kernels import cross, dot, f123
 from groomtool.fit.sampling import _kept
@@ -233,6 +235,47 @@ def curve_table(helix: SuperHelix) -> CurveTable:
 
 
 # ------------------------------------------------------------------------------------------ error
+CHUNK = 1 << 17          # vertices per batch of closest-point queries
+
+
+def locate(table: CurveTable, strand, s):
+    """Element (global index) and local parameter of arc lengths s (clamped) on strands."""
+    strand = np.asarray(strand, dtype=np.int64)
+    s = np.clip(np.asarray(s, dtype=np.float64), 0.0, table.strand_length[strand])
+    counts = np.diff(table.elem_offsets)
+    base = np.concatenate([[0.0], np.cumsum(table.strand_length + 1.0)])[:-1]
+    key = table.start + np.repeat(base, counts)
+    e = np.searchsorted(key, s + base[strand], side="right") - 1
+    e = np.clip(e, table.elem_offsets[strand], table.elem_offsets[strand + 1] - 1)
+    return e, np.clip(s - table.start[e], 0.0, table.length[e])
+
+
+def closest_distances(table: CurveTable, points, strand, s_guess=None, elem=None, t=None, iterations: int = 2):
+    """Distances (P,) from points to their strand's curve, with the foot points' (element, t).
+
+    Start from arc lengths ``s_guess`` or directly from elements ``elem`` and local parameters ``t``.
+    """
+    points = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
+    strand = np.asarray(strand, dtype=np.int64)
+    if elem is None:
+        elem, t = locate(table, strand, s_guess)
+    e = np.array(elem, dtype=np.int64).ravel()
+    t = np.array(t, dtype=np.float64).ravel()
+    first = np.ascontiguousarray(np.broadcast_to(table.elem_offsets[strand], e.shape))
+    last = np.ascontiguousarray(np.broadcast_to(table.elem_offsets[strand + 1] - 1, e.shape))
+    dist = np.empty(len(e))
+    _closest_kernel(*_element_arrays(table), points, e, t, first, last, iterations, dist)
+    return dist, e, t
+
+
+@njit(cache=True, error_model="numpy")
+def _closest_kernel(C, T, Om, length, points, e, t, first, last, iterations, dist):
+    """:func:`closest_distances` over points; e, t updated in place."""
+    for k in range(points.shape[0]):
+        dist[k], e[k], t[k] = _closest_s(C, T, Om, length, points[k, 0], points[k, 1], points[k, 2], e[k], t[k],
+                                         first[k], last[k], iterations)
+
+
 class ElementRows:
     """Per-element rows (3, E): C_e, T_e, u1, u2; and w (E,), l (E,)."""
 

@@ -15,9 +15,10 @@ ends; where g' is small (far from the curve, near a centre of curvature) a proje
 taken instead.  Started from the point that corresponds to the vertex (its arc-length fraction), this
 finds the local closest point: the one that corresponds to the vertex.
 
-:func:`closest_distances` and :func:`strand_errors` run numba kernels, one vertex at a time, with
-the operations (and summation orders) of the array versions ``closest_distances_numpy`` /
-``strand_errors_numpy``, kept as the tests' references in tests/reference/fit.py.
+:func:`strand_errors` runs numba kernels, one vertex at a time (``_closest_s``), with the operations (and
+summation orders) of the array versions ``closest_distances_numpy`` / ``strand_errors_numpy``, kept as the
+tests' references in tests/reference/fit.py beside ``closest_distances`` (``_closest_s`` over any points:
+the tests' entry to the kernel).
 """
 
 from __future__ import annotations
@@ -28,37 +29,6 @@ from numba import njit
 from .state import CurveTable
 
 PRECHECK_STRIDE = 4      # vertex stride of the cheap first error check of a pass
-CHUNK = 1 << 17          # vertices per batch of closest-point queries
-
-
-def locate(table: CurveTable, strand, s):
-    """Element (global index) and local parameter of arc lengths s (clamped) on strands."""
-    strand = np.asarray(strand, dtype=np.int64)
-    s = np.clip(np.asarray(s, dtype=np.float64), 0.0, table.strand_length[strand])
-    counts = np.diff(table.elem_offsets)
-    base = np.concatenate([[0.0], np.cumsum(table.strand_length + 1.0)])[:-1]
-    key = table.start + np.repeat(base, counts)
-    e = np.searchsorted(key, s + base[strand], side="right") - 1
-    e = np.clip(e, table.elem_offsets[strand], table.elem_offsets[strand + 1] - 1)
-    return e, np.clip(s - table.start[e], 0.0, table.length[e])
-
-
-def closest_distances(table: CurveTable, points, strand, s_guess=None, elem=None, t=None, iterations: int = 2):
-    """Distances (P,) from points to their strand's curve, with the foot points' (element, t).
-
-    Start from arc lengths ``s_guess`` or directly from elements ``elem`` and local parameters ``t``.
-    """
-    points = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
-    strand = np.asarray(strand, dtype=np.int64)
-    if elem is None:
-        elem, t = locate(table, strand, s_guess)
-    e = np.array(elem, dtype=np.int64).ravel()
-    t = np.array(t, dtype=np.float64).ravel()
-    first = np.ascontiguousarray(np.broadcast_to(table.elem_offsets[strand], e.shape))
-    last = np.ascontiguousarray(np.broadcast_to(table.elem_offsets[strand + 1] - 1, e.shape))
-    dist = np.empty(len(e))
-    _closest_kernel(*_element_arrays(table), points, e, t, first, last, iterations, dist)
-    return dist, e, t
 
 
 def _element_arrays(table: CurveTable):
@@ -127,14 +97,6 @@ def _closest_s(C, T, Om, length, px, py, pz, e, t, first, last, iterations):
             t = t if t > 0.0 else 0.0
             t = t if t < length[e] else length[e]
     return 0.0, e, t
-
-
-@njit(cache=True, error_model="numpy")
-def _closest_kernel(C, T, Om, length, points, e, t, first, last, iterations, dist):
-    """:func:`closest_distances` over points; e, t updated in place."""
-    for k in range(points.shape[0]):
-        dist[k], e[k], t[k] = _closest_s(C, T, Om, length, points[k, 0], points[k, 1], points[k, 2], e[k], t[k],
-                                         first[k], last[k], iterations)
 
 
 @njit(cache=True, error_model="numpy")
