@@ -15,8 +15,8 @@ from scipy.integrate import solve_ivp
 from scipy.spatial.transform import Rotation
 
 from groomtool.rods import superhelix as sh
-from groomtool.rods.series import SERIES_X, c_table, f_table
-from reference.rods import kinematics_reference
+from groomtool.rods.series import SERIES_X, c_table
+from reference.rods import f_table, kinematics_reference
 
 
 def random_helix(seed, n_strands=3, n_elements=5, scale=30.0, zero_some=True):

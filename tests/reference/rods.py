@@ -8,6 +8,7 @@
   batched matmuls, its diagonal blocks by :func:`psi_form_hessian` (the vectorised form of the compiled
   ``superhelix._form_hessian_add``).
 * :func:`transport`, :func:`rotate_about`: frames moved along a discrete rod (tests of the DER rest data).
+* :func:`f_table`: the functions f_n(x) = c_n(1, x) and their derivatives, through ``rods.series.c_table``.
 """
 
 from __future__ import annotations
@@ -18,6 +19,13 @@ from groomtool.rods import clothoid as cl
 from groomtool.rods import discrete as dr
 from groomtool.rods import superhelix as sh
 from groomtool.rods.series import c_table
+
+
+def f_table(x: np.ndarray):
+    """f_n(x), f_n'(x), f_n''(x) for n = 0..4, each with a leading axis of size 5 (x >= 0, any shape):
+    ``c_table`` at t = 1 (c_n(1, z) = f_n(z)), the package's series and closed forms."""
+    x = np.asarray(x, dtype=np.float64)
+    return c_table(np.ones_like(x), x, order=2)
 
 
 def clothoid_gravity_force_jacobian_full(clothoid: cl.SuperClothoid, linear_density: float, gravity,

@@ -5,7 +5,7 @@ f_n(x) as in :mod:`groomtool.rods.series` (theta^2 = x), in forms without cancel
     f1 = sin(theta)/theta,    f2 = (1 - cos theta)/theta^2 = 2 sin^2(theta/2)/theta^2,
     f3 = (theta - sin theta)/theta^3   (Taylor series sum (-x)^k/(2k+3)! below theta = 1).
 
-Cheaper than ``series.f_table`` (no derivatives), same accuracy (a few ulps).  ``*_s`` functions: the
+Cheaper than ``series.c_table`` at t = 1 (no derivatives), same accuracy (a few ulps).  ``*_s`` functions: the
 same on scalars, for numba kernels (same operations in the same order as the array versions).
 """
 

@@ -104,19 +104,6 @@ def _c_kernel(t, z, order, out):
             tn *= ti
 
 
-def f_table(x: np.ndarray):
-    """f_n(x), f_n'(x), f_n''(x) for n = 0..4, each with a leading axis of size 5 (x >= 0, any shape).
-
-    Accurate to a few ulps for all x (series below SERIES_X, closed forms and recurrences above).
-    """
-    x = np.asarray(x, dtype=np.float64)
-    flat = np.ascontiguousarray(x.ravel())
-    out = np.empty((3, N_MAX + 1, flat.size))
-    _c_kernel(np.ones_like(flat), flat, 2, out)
-    out = out.reshape((3, N_MAX + 1) + x.shape)
-    return out[0], out[1], out[2]
-
-
 def c_table(t: np.ndarray, z: np.ndarray, order: int = 2):
     """c_n(t, z) and its first ``order`` z-derivatives for n = 0..4, each with a leading axis of size 5.
 
