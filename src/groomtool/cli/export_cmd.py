@@ -38,7 +38,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                         "rest_shape.hair, ...)")
     p.add_argument("--shape", choices=["rest", "fitted"], default=None,
                    help="polylines of hair/obj (default rest) and points of the vtp (default fitted); usd holds both")
-    p.add_argument("--samples", type=int, default=8, metavar="N", help="samples per helix element (default 8)")
+    p.add_argument("--samples", type=int, default=8, metavar="N", help="samples per rod element, helix or clothoid (default 8)")
     p.set_defaults(func=cmd_export)
     return p
 

@@ -8,9 +8,11 @@ Written (docs/formats.md, "Alembic")::
 
     /groom            Xform (identity)
     /groom/strands    Curves (linear, non-periodic), centimetres: the strands polyline of the USD
-                      export (the discrete rods' vertices, or the fitted helices sampled
+                      export (the discrete rods' vertices, or the fitted rods -- helices or clothoids -- sampled
                       ``per_element`` times per element), widths and Unreal's groom_* attributes,
-                      rest data per vertex (rest_position, rest_length, cm) and material per strand
+                      rest data per vertex (rest_position, rest_length, cm) and material per strand;
+                      a Super Space Clothoid result also groomtool_darboux / groomtool_rest_darboux
+                      (q and q0 at each vertex, 1/m)
     /groom/guides     (``guides=True``) the same curves with groom_guide = 1: every strand a
                       simulation guide
 
@@ -133,6 +135,9 @@ def _write_curves(AbcGeom, imath, parent, name, points, offsets, radius, rest, m
     keep.append(_geom_param(AbcGeom, imath, arb, "rest_length", rest["length"] * CM, vertex))
     for key, values in material.items():  # SI values, per strand
         keep.append(_geom_param(AbcGeom, imath, arb, f"groomtool_{key}", values, uniform))
+    for key in ("darboux", "rest_darboux"):  # clothoid results: q, q0 (1/m, SI) at each vertex
+        if key in rest:
+            keep.append(_geom_param(AbcGeom, imath, arb, f"groomtool_{key}", rest[key], vertex))
     return curves, keep
 
 
@@ -142,7 +147,8 @@ def read_alembic(path, scale: float = 1.0, up: str = "y", repair: bool = False) 
     file unit: Unreal's grooms are in cm).  Render strands (``groom_guide`` 0 or absent) when there
     are any, else the guides.  ``metadata["alembic"]``: object paths, curve types, which were guides,
     and the groom_* / rest attributes found (``metadata["rest_data"]``: ``rest_position`` (m),
-    ``rest_length`` (m), ``groom_id`` when one curves object was read)."""
+    ``rest_length`` (m), ``groom_id`` and, from a clothoid result, ``groomtool_darboux`` /
+    ``groomtool_rest_darboux`` (1/m, not scaled) when one curves object was read)."""
     source = str(path)
     Abc, AbcGeom, _ = _modules(source)
     try:
@@ -172,7 +178,8 @@ def read_alembic(path, scale: float = 1.0, up: str = "y", repair: bool = False) 
     rest = {}
     if len(chosen) == 1 and "repairs" not in groom.metadata:
         params = chosen[0]["params"]
-        for key, unit in (("rest_position", float(scale)), ("rest_length", float(scale)), ("groom_id", None)):
+        for key, unit in (("rest_position", float(scale)), ("rest_length", float(scale)), ("groom_id", None),
+                          ("groomtool_darboux", None), ("groomtool_rest_darboux", None)):
             if key in params:
                 rest[key] = params[key] * unit if unit is not None else params[key]
     groom.metadata["rest_data"] = rest

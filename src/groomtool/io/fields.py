@@ -2,9 +2,12 @@
 
 Everything here works on the dict of rest.npz arrays (:func:`groomtool.io.results.load_arrays` reads
 it from an ``InversionResult``, an output directory of ``groom invert`` or its ``rest.npz``), in SI
-units.  The strands are shown as the fitted Super-Helices sampled ``per_element`` times per element;
-the rest shape is sampled at the same arc lengths, so the two polylines correspond vertex by vertex.
-No pyvista import here.
+units.  The strands are shown as the fitted rods -- Super-Helices, or Super Space Clothoids for a
+``groom invert --model clothoid`` result (rest.npz ``model``) -- sampled ``per_element`` times per
+element; the rest shape is sampled at the same arc lengths, so the two polylines correspond vertex by
+vertex.  The Darboux vector q = (twist, kappa1, kappa2) at a point is its element's constant value for
+a Super-Helix and the linear interpolation of the element's two nodal values for a clothoid
+(:func:`darboux_at`, :func:`sample_darboux`).  No pyvista import here.
 """
 
 from __future__ import annotations
@@ -14,8 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..groom import GroomError
-from ..rods import superhelix as sh
-from .results import result_helix
+from .results import result_model, result_rod, rod_module
 
 
 # ------------------------------------------------------------------------------------- sampling
@@ -24,8 +26,8 @@ class Samples:
     """The fitted and rest shapes sampled at the same arc lengths.
 
     points, rest_points (V, 3) m; offsets (S + 1,); strand (V,) strand id; arc (V,) arc length (m);
-    element (V,) index of the vertex's helix element in the flat element list (a node belongs to
-    the element it starts).
+    element (V,) index of the vertex's element in the flat element list (a node belongs to the
+    element it starts; a strand's tip to its last element); model: "superhelix" or "clothoid".
     """
 
     points: np.ndarray
@@ -35,6 +37,7 @@ class Samples:
     arc: np.ndarray
     element: np.ndarray
     per_element: int
+    model: str = "superhelix"
 
     @property
     def counts(self) -> np.ndarray:
@@ -42,14 +45,51 @@ class Samples:
 
 
 def sample(arrays: dict, per_element: int = 8) -> Samples:
-    """Sample the fitted and the rest helices ``per_element`` times per element (nodes included)."""
-    h = result_helix(arrays)
-    points, offsets, strand, arc = sh.sample(h, per_element)
-    rest_points, _, _, _ = sh.sample(result_helix(arrays, rest=True), per_element)
+    """Sample the fitted and the rest rods (helices or clothoids) ``per_element`` times per element
+    (nodes included)."""
+    h = result_rod(arrays)
+    mod = rod_module(h)
+    points, offsets, strand, arc = mod.sample(h, per_element)
+    rest_points, _, _, _ = mod.sample(result_rod(arrays, rest=True), per_element)
     local = np.arange(len(strand)) - offsets[strand]
     elem = np.minimum(local // per_element, np.maximum(h.n_elements[strand] - 1, 0))
-    element = h.flat_offsets()[strand] + elem
-    return Samples(points, rest_points, offsets, strand, arc, element, per_element)
+    element = np.concatenate([[0], np.cumsum(h.n_elements)]).astype(np.int64)[strand] + elem
+    return Samples(points, rest_points, offsets, strand, arc, element, per_element, result_model(arrays))
+
+
+def _nodal(arrays: dict, rest: bool) -> tuple[np.ndarray, np.ndarray]:
+    """A clothoid result's node offsets (S + 1,) and nodal Darboux vectors (n_nodes, 3)."""
+    key = "clothoid_rest_curvatures" if rest else "clothoid_curvatures"
+    return (np.asarray(arrays["clothoid_node_offsets"], dtype=np.int64),
+            np.asarray(arrays[key], dtype=np.float64).reshape(-1, 3))
+
+
+def sample_darboux(arrays: dict, samples: Samples, rest: bool = False) -> np.ndarray:
+    """(V, 3) the Darboux vector q (``rest``: q0) at every sample: a Super-Helix's element value (the sample's
+    element); a clothoid's (1 - u) q_j + u q_(j+1) on element j at the sample's fraction u of it (the nodal
+    values exactly at the nodes, which are samples)."""
+    if samples.model != "clothoid":
+        return np.asarray(arrays["rest_curvatures" if rest else "curvatures"]).reshape(-1, 3)[samples.element]
+    nodes, q = _nodal(arrays, rest)
+    strand_offsets = np.asarray(arrays["strand_offsets"], dtype=np.int64)
+    local = samples.element - strand_offsets[samples.strand]  # element within the strand
+    index = np.arange(len(samples.strand)) - samples.offsets[samples.strand]
+    u = ((index - local * samples.per_element) / samples.per_element)[:, None]
+    node = nodes[samples.strand] + local
+    return (1.0 - u) * q[node] + u * q[node + 1]
+
+
+def darboux_at(arrays: dict, strand, s, rest: bool = False) -> np.ndarray:
+    """(P, 3) the Darboux vector q (``rest``: q0) at arc lengths ``s`` (m, clamped to the strand) of ``strand``:
+    a Super-Helix's element value, a clothoid's linear interpolation of its element's nodal values."""
+    rod = result_rod(arrays, rest=rest)
+    strand = np.asarray(strand, dtype=np.int64).reshape(-1)
+    elem, t = rod_module(rod).locate(rod, strand, np.asarray(s, dtype=np.float64).reshape(-1))
+    if result_model(arrays) != "clothoid":
+        return rod.curvatures[strand, elem]
+    length = rod.lengths[strand, elem]
+    u = np.where(length > 0, t / np.where(length > 0, length, 1.0), 0.0)[:, None]
+    return (1.0 - u) * rod.curvatures[strand, elem] + u * rod.curvatures[strand, elem + 1]
 
 
 def nearest_samples(samples: Samples, strand, s) -> np.ndarray:
@@ -116,13 +156,18 @@ def strand_fields(arrays: dict) -> dict:
     fit = np.asarray(arrays.get("fit_max_error", np.zeros(0)), dtype=np.float64)
     if fit.shape != (S,):
         fit = np.full(S, np.nan)
-    q = np.asarray(arrays["curvatures"]).reshape(-1, 3)
-    q0 = np.asarray(arrays["rest_curvatures"]).reshape(-1, 3)
+    if result_model(arrays) == "clothoid":  # q0 - q is linear on each element: its norm is largest at a node
+        nodes, q = _nodal(arrays, rest=False)
+        q0 = _nodal(arrays, rest=True)[1]
+        owner = np.repeat(np.arange(S), np.diff(nodes))
+    else:
+        q = np.asarray(arrays["curvatures"]).reshape(-1, 3)
+        q0 = np.asarray(arrays["rest_curvatures"]).reshape(-1, 3)
+        owner = np.repeat(np.arange(S), counts)
     change = np.linalg.norm(q0 - q, axis=1)
     max_change = np.zeros(S)
     if len(change):
-        elem_strand = np.repeat(np.arange(S), counts)
-        np.maximum.at(max_change, elem_strand, change)
+        np.maximum.at(max_change, owner, change)
     n_contacts, contact_load = np.zeros(S, np.int64), np.zeros(S)
     fw = contact_forces_world(arrays)
     if len(fw):
@@ -147,8 +192,8 @@ def strand_fields(arrays: dict) -> dict:
 
 def vertex_fields(arrays: dict, samples: Samples) -> dict:
     """Per-sample (V,) or (V, 3) fields: see docs/outputs.md (VTP point data)."""
-    q = np.asarray(arrays["curvatures"]).reshape(-1, 3)[samples.element]
-    q0 = np.asarray(arrays["rest_curvatures"]).reshape(-1, 3)[samples.element]
+    q = sample_darboux(arrays, samples)
+    q0 = sample_darboux(arrays, samples, rest=True)
     force, load = vertex_contact_forces(arrays, samples)
     per_strand = strand_fields(arrays)
     return {
@@ -180,12 +225,12 @@ def polyline_arc(points: np.ndarray, offsets: np.ndarray) -> np.ndarray:
 
 
 def der_rest_geometry(arrays: dict, points: np.ndarray, offsets: np.ndarray, arc=None) -> dict:
-    """Discrete-Elastic-Rods rest data of the rest helix, sampled where ``points`` lie.
+    """Discrete-Elastic-Rods rest data of the rest rod (helix or clothoid), sampled where ``points`` lie.
 
     ``points`` (V, 3), ``offsets`` (S + 1,) is the groomed polyline the data belong to (every strand
-    >= 3 vertices); ``arc`` (V,) the helix arc length of each vertex (default: the polyline's arc
-    length scaled to the helix length).  Conventions of Bergou et al. 2008/2010, on the rest polyline
-    (the rest helix evaluated at ``arc``), edge j from vertex j to j + 1, interior vertex i:
+    >= 3 vertices); ``arc`` (V,) the rod arc length of each vertex (default: the polyline's arc
+    length scaled to the rod length).  Conventions of Bergou et al. 2008/2010, on the rest polyline
+    (the rest rod evaluated at ``arc``), edge j from vertex j to j + 1, interior vertex i:
 
     - der_rest_lengths (E,) m: |e_j|;
     - der_rest_kappa (I, 2): ((kb)_i . m2, -(kb)_i . m1) with the curvature binormal
@@ -194,9 +239,9 @@ def der_rest_geometry(arrays: dict, points: np.ndarray, offsets: np.ndarray, arc
     - der_rest_twist (I,) rad: angle from m1 of edge i-1, parallel-transported onto edge i, to m1
       of edge i, about its tangent;
     - der_frames (E, 3, 3): the groomed polyline's material frames, rows (d1, d2, d3 = tangent),
-      d1 from the fitted helix's n1 at the edge midpoint made normal to the edge.
+      d1 from the fitted rod's n1 at the edge midpoint made normal to the edge.
 
-    The material frame of an edge is the helix frame (columns tangent, n1, n2) at its midpoint arc
+    The material frame of an edge is the rod's frame (columns tangent, n1, n2) at its midpoint arc
     length, n1 made normal to the edge: m1 = n1, m2 = t x m1.  This is the rest shape's own
     geometry, exact as the sampling is refined; the exact discrete equilibrium is rods.der's export.
     """
@@ -204,7 +249,8 @@ def der_rest_geometry(arrays: dict, points: np.ndarray, offsets: np.ndarray, arc
 
     points = np.asarray(points, dtype=np.float64)
     offsets = np.asarray(offsets, dtype=np.int64)
-    fitted, rest = result_helix(arrays), result_helix(arrays, rest=True)
+    fitted, rest = result_rod(arrays), result_rod(arrays, rest=True)
+    mod = rod_module(fitted)
     S = len(offsets) - 1
     counts = np.diff(offsets)
     if np.any(counts < 3):
@@ -214,11 +260,12 @@ def der_rest_geometry(arrays: dict, points: np.ndarray, offsets: np.ndarray, arc
         arc = polyline_arc(points, offsets)
         tips = arc[offsets[1:] - 1]
         arc = arc * (fitted.strand_lengths / np.where(tips > 0, tips, 1.0))[strand]
-    rest_points, _ = sh.evaluate(rest, strand, arc)
+    rest_kin = mod.kinematics(rest, **_light(mod))
+    rest_points, _ = mod.evaluate(rest, strand, arc, rest_kin)
     e0 = edge_start_vertices(offsets)
     mid = 0.5 * (arc[e0] + arc[e0 + 1])
-    _, rest_frames = sh.evaluate(rest, strand[e0], mid)
-    _, fitted_frames = sh.evaluate(fitted, strand[e0], mid)
+    _, rest_frames = mod.evaluate(rest, strand[e0], mid, rest_kin)
+    _, fitted_frames = mod.evaluate(fitted, strand[e0], mid)
 
     def frames_on(polyline, helix_frames):
         e = polyline[e0 + 1] - polyline[e0]
@@ -252,13 +299,18 @@ def der_rest_geometry(arrays: dict, points: np.ndarray, offsets: np.ndarray, arc
 ROD_PREFIXES = ("der_", "cosserat_", "node_")  #: rest.npz keys of the discrete-rod export
 
 
+def _light(mod) -> dict:
+    """kinematics() keywords for positions and frames only (the clothoid's moments are for derivatives)."""
+    return {"moments": False} if mod.__name__.endswith("clothoid") else {}
+
+
 def _rest_arc(arrays: dict, points: np.ndarray, offsets: np.ndarray) -> np.ndarray:
-    """Helix arc length of the rod vertices: their polyline arc length scaled to the helix length
+    """Rod arc length of the rod vertices: their polyline arc length scaled to the fitted rod's length
     (as :func:`der_rest_geometry` does)."""
     arc = polyline_arc(points, offsets)
     counts = np.diff(offsets)
     tips = arc[np.maximum(offsets[1:] - 1, 0)]
-    lengths = result_helix(arrays).strand_lengths
+    lengths = result_rod(arrays).strand_lengths
     strand = np.repeat(np.arange(len(counts)), counts)
     return arc * (lengths / np.where(tips > 0, tips, 1.0))[strand]
 
@@ -319,10 +371,12 @@ def _quat_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 def consumer_rest_data(arrays: dict, points: np.ndarray, offsets: np.ndarray, arc, rod_data: dict) -> dict:
     """Per-vertex rest data of the rod polyline (V vertices) as simulators name them (USD, Alembic).
 
-    points: the rest helices at the vertices' arc lengths; rotation: the rest frame of the edge
-    leaving each vertex (tip: its last edge's) as a quaternion; bend: q_i^-1 q_(i+1) (identity at
+    points: the rest rods (helices or clothoids) at the vertices' arc lengths; rotation: the rest frame of
+    the edge leaving each vertex (tip: its last edge's) as a quaternion; bend: q_i^-1 q_(i+1) (identity at
     the last edge and the tip); length: the rest length of the edge leaving each vertex (der_rest_lengths
     when the data have them; 0 at the tip); normal: d1 of the rest frame; orient: the groomed frame.
+    A clothoid result also gets darboux and rest_darboux (V, 3): q and q0 at the vertices' arc lengths
+    (:func:`darboux_at`), its curvatures being linear along each element rather than constant.
     """
     from ..rods.discrete import edge_start_vertices
 
@@ -331,21 +385,23 @@ def consumer_rest_data(arrays: dict, points: np.ndarray, offsets: np.ndarray, ar
     strand = np.repeat(np.arange(S), counts)
     if arc is None:
         arc = _rest_arc(arrays, points, offsets)
-    rest_helix = result_helix(arrays, rest=True)
-    rest_points, _ = sh.evaluate(rest_helix, strand, arc)
+    rest_helix = result_rod(arrays, rest=True)
+    mod = rod_module(rest_helix)
+    rest_kin = mod.kinematics(rest_helix, **_light(mod))
+    rest_points, _ = mod.evaluate(rest_helix, strand, arc, rest_kin)
     out = {"points": rest_points}
     if np.any(counts < 2):
         raise GroomError("USD rest data need strands of at least 2 vertices")
     e0 = edge_start_vertices(offsets)
     mid = 0.5 * (arc[e0] + arc[e0 + 1])
-    _, rest_helix_frames = sh.evaluate(rest_helix, strand[e0], mid)
+    _, rest_helix_frames = mod.evaluate(rest_helix, strand[e0], mid, rest_kin)
     rest_frames = _edge_frames(rest_points, offsets, rest_helix_frames)
     if "cosserat_directors" in rod_data:
         groomed = rod_data["cosserat_directors"][0]
     elif "der_frames" in rod_data:
         groomed = rod_data["der_frames"][0]
     else:
-        _, fitted_frames = sh.evaluate(result_helix(arrays), strand[e0], mid)
+        _, fitted_frames = mod.evaluate(result_rod(arrays), strand[e0], mid)
         groomed = _edge_frames(points, offsets, fitted_frames)
     q_rest = frames_to_quaternions(rest_frames)
     rotation = _per_vertex(q_rest, offsets)
@@ -361,23 +417,28 @@ def consumer_rest_data(arrays: dict, points: np.ndarray, offsets: np.ndarray, ar
         lengths = np.linalg.norm(rest_points[e0 + 1] - rest_points[e0], axis=1)
     out["length"] = _per_vertex(np.asarray(lengths, dtype=np.float64), offsets, tip=0.0)
     out["orient"] = _per_vertex(frames_to_quaternions(np.asarray(groomed, dtype=np.float64)), offsets)
+    if result_model(arrays) == "clothoid":
+        out["darboux"] = darboux_at(arrays, strand, arc)
+        out["rest_darboux"] = darboux_at(arrays, strand, arc, rest=True)
     return out
 
 
 def rod_polyline_data(arrays: dict, samples) -> tuple:
-    """Points, offsets, {key: (values, layout)}, origin and helix arc lengths (None: from the
+    """Points, offsets, {key: (values, layout)}, origin and rod arc lengths (None: from the
     polyline) of the discrete-rod polyline the USD and Alembic writers write.
 
     With a discrete export (``rod_points``, ``rod_offsets`` and der_/cosserat_/node_ arrays) that
-    polyline and its arrays; without, the fitted helix samples.  DER data missing from the export
-    are computed from the rest helix (:func:`der_rest_geometry`).
+    polyline and its arrays; without, the fitted rod samples.  DER data missing from the export
+    are computed from the rest rod (:func:`der_rest_geometry`): "rest helix geometry", or "rest
+    clothoid geometry" for a clothoid result.
     """
     if "rod_points" in arrays and "rod_offsets" in arrays:
         points = np.asarray(arrays["rod_points"], dtype=np.float64).reshape(-1, 3)
         offsets = np.asarray(arrays["rod_offsets"], dtype=np.int64)
         arc, origin = None, "discrete export"
     else:
-        points, offsets, arc, origin = samples.points, samples.offsets, samples.arc, "rest helix geometry"
+        points, offsets, arc = samples.points, samples.offsets, samples.arc
+        origin = f"rest {'clothoid' if samples.model == 'clothoid' else 'helix'} geometry"
     V, S = len(points), len(offsets) - 1
     sizes = {V: "vertex", V - S: "edge", V - 2 * S: "interior"}
     data = {}
@@ -390,6 +451,10 @@ def rod_polyline_data(arrays: dict, samples) -> tuple:
         for key, value in der_rest_geometry(arrays, points, offsets, arc).items():
             data[key] = (value, sizes[len(value)])
         if origin == "discrete export":
-            origin = "discrete export; DER data from the rest helix geometry"
+            origin = f"discrete export; DER data from the rest {_rod_word(arrays)} geometry"
     return points, offsets, data, origin, arc
 
+
+
+def _rod_word(arrays: dict) -> str:
+    return "clothoid" if result_model(arrays) == "clothoid" else "helix"

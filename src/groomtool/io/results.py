@@ -252,13 +252,12 @@ def result_clothoid(arrays: dict, rest: bool = False) -> cl.SuperClothoid:
 
 def result_helix(arrays: dict, rest: bool = False) -> sh.SuperHelix:
     """The fitted Super-Helices (``rest=True``: with the rest curvatures), padded.  A Super Space Clothoid result
-    raises :class:`ModelError` (the exporters and the viewer take Super-Helices only; the simulator and ``groom check``
-    read either model through :meth:`SavedResult.rod`)."""
+    raises :class:`ModelError`: its per-element curvatures are element means, not a Super-Helix equilibrium
+    (:func:`result_rod` takes either model; the exporters, the viewer, the simulator and ``groom check`` use it)."""
     if result_model(arrays) == "clothoid":
         raise ModelError(f"{arrays.get('source', 'rest.npz')}: a Super Space Clothoid result (groom invert --model "
-                         "clothoid): the exporters and the viewer take Super-Helix results only so far "
-                         "(docs/clothoid.md, 'Not done'); read it with groomtool.io.results.read_result(...)"
-                         ".clothoid()")
+                         "clothoid), not Super-Helices; read it with groomtool.io.results.result_rod(...) or "
+                         "read_result(...).rod() (docs/clothoid.md)")
     offsets = np.asarray(arrays["strand_offsets"], dtype=np.int64)
     counts = np.diff(offsets)
     n_max = int(counts.max()) if len(counts) else 0
@@ -268,6 +267,19 @@ def result_helix(arrays: dict, rest: bool = False) -> sh.SuperHelix:
     q = np.zeros(mask.shape + (3,))
     q[mask] = np.asarray(arrays["rest_curvatures" if rest else "curvatures"]).reshape(-1, 3)
     return sh.SuperHelix(arrays["root_positions"], arrays["root_frames"], lengths, q, counts)
+
+
+def result_rod(arrays: dict, rest: bool = False):
+    """The fitted rods of either model, padded (``rest=True``: with the rest curvatures): a
+    :class:`~groomtool.rods.superhelix.SuperHelix` or, for a model "clothoid" result, a
+    :class:`~groomtool.rods.clothoid.SuperClothoid` (nodal curvatures (S, N + 1, 3))."""
+    return result_clothoid(arrays, rest) if result_model(arrays) == "clothoid" else result_helix(arrays, rest)
+
+
+def rod_module(rod):
+    """The kinematics module of a rod (:mod:`groomtool.rods.clothoid` or :mod:`groomtool.rods.superhelix`): both
+    have ``kinematics``, ``evaluate``, ``evaluate_positions``, ``sample`` and ``locate`` with the same signatures."""
+    return cl if isinstance(rod, cl.SuperClothoid) else sh
 
 
 def head_mesh(arrays: dict):

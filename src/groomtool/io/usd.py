@@ -15,7 +15,10 @@ type and unit)::
     /Groom/Contacts   Points: contact points and forces (when there are contacts)
     /Groom/Head       Mesh: the head (when the result has one)
 
-Stage metadata: metersPerUnit 1, kilogramsPerUnit 1, upAxis Y or Z as the groom.
+Stage metadata: metersPerUnit 1, kilogramsPerUnit 1, upAxis Y or Z as the groom.  A Super Space
+Clothoid result (rest.npz ``model`` "clothoid") is written the same way from its clothoids, plus
+``groomtool:model`` and its nodal ``groomtool:clothoid_*`` data and the per-vertex Darboux vectors
+``primvars:groom:darboux`` / ``groom:rest_darboux`` (docs/usd.md).
 ``read_usd`` reads our files back (with their rest data) and plain BasisCurves from other tools,
 applying the stage's metersPerUnit, upAxis and the prims' transforms.
 """
@@ -34,7 +37,7 @@ from . import fields
 from .atomic import atomic_path
 from .fields import consumer_rest_data, frames_to_quaternions, quaternions_to_frames, rod_polyline_data
 from .formats import suffixes
-from .results import head_mesh, load_arrays
+from .results import CLOTHOID_KEYS, head_mesh, load_arrays, result_model
 from .validate import validate
 
 SCHEMA_VERSION = 2
@@ -60,7 +63,7 @@ def write_usd(source, path, per_element: int = 8, head=None) -> Path:
     """Write a result (``InversionResult``, output directory, rest.npz or its arrays) as USD.
 
     The format follows the extension: .usda (text), .usdc or .usd (binary crate), .usdz (package).
-    ``per_element``: samples per helix element of the sampled shapes; ``head``: a trimesh used when
+    ``per_element``: samples per rod element (helix or clothoid) of the sampled shapes; ``head``: a trimesh used when
     the result holds no head.  Written atomically; returns the path.
     """
     arrays = load_arrays(source)
@@ -95,9 +98,12 @@ def build_stage(arrays: dict, per_element: int = 8, head=None) -> Usd.Stage:
     samples = fields.sample(arrays, per_element)
     radius = float(arrays.get("radius", Material.radius))  # rest.npz before it held the radius
     rod_points, rod_offsets, rod_data, origin, arc = rod_polyline_data(arrays, samples)
-    stage.GetRootLayer().customLayerData = {"groomtool": {
-        "version": __version__, "schema_version": SCHEMA_VERSION, "up": up,
-        "source": str(arrays.get("source", "")), "discrete_rest_data": origin}}
+    clothoid = result_model(arrays) == "clothoid"
+    layer_data = {"version": __version__, "schema_version": SCHEMA_VERSION, "up": up,
+                  "source": str(arrays.get("source", "")), "discrete_rest_data": origin}
+    if clothoid:  # Super-Helix files stay as they were: no "model" means Super-Helices, as in rest.npz
+        layer_data["model"] = "clothoid"
+    stage.GetRootLayer().customLayerData = {"groomtool": layer_data}
 
     curves = _curves(stage, STRANDS, rod_points, rod_offsets, radius, (0.45, 0.3, 0.15))
     prim = curves.GetPrim()
@@ -115,6 +121,11 @@ def build_stage(arrays: dict, per_element: int = 8, head=None) -> Usd.Stage:
     _exact(prim, "strand_offsets", np.asarray(arrays["strand_offsets"]))
     for key in HELIX_CONSTANT:
         _exact(prim, key, np.asarray(arrays[key]))
+    if clothoid:  # the nodal Darboux vectors: the clothoid itself (its per-element values are element means)
+        model = prim.CreateAttribute(EXACT + "model", Sdf.ValueTypeNames.String, custom=True)
+        model.Set("clothoid")
+        for key in CLOTHOID_KEYS:
+            _exact(prim, key, np.asarray(arrays[key]))
     for key in HELIX_UNIFORM:
         if key in arrays and len(arrays[key]) == S:
             _exact(prim, key, np.asarray(arrays[key]))
@@ -162,6 +173,9 @@ def _write_consumer_rest(curves: UsdGeom.BasisCurves, rest: dict) -> None:
     _quat_primvar(pv, "rest_rotation", rest["rotation"])
     _quat_primvar(pv, "rest_bend_rotation", rest["bend_rotation"])
     _quat_primvar(pv, "orient", rest["orient"])
+    for key in ("darboux", "rest_darboux"):  # clothoid results: q and q0 at each vertex (linear per element)
+        if key in rest:
+            _primvar(pv, key, rest[key], UsdGeom.Tokens.vertex, layout="vertex")
 
 
 def _quat_primvar(pv: UsdGeom.PrimvarsAPI, name: str, q: np.ndarray) -> UsdGeom.Primvar:
@@ -476,6 +490,9 @@ def _groom_primvars(prim, offsets=None) -> dict:
         name = attr.GetName()
         if name.startswith(EXACT) and attr.HasAuthoredValue():
             value = np.asarray(attr.Get())
+            if value.dtype.kind in "USO":  # groomtool:model
+                out[name[len(EXACT):]] = np.array(str(attr.Get()))
+                continue
             if value.dtype.kind == "i":
                 value = value.astype(np.int64)
             shape = attr.GetCustomDataByKey(SHAPE_KEY)

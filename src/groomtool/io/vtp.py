@@ -1,9 +1,10 @@
 """VTK PolyData (.vtp, for ParaView and the viewer): one polyline per strand with the result's fields.
 
 Point data (per sample) and cell data (per strand) are listed in docs/outputs.md; field data hold
-the material constants.  The strands are the fitted helices (or the rest shape) sampled
-``per_element`` times per element; ``rest_displacement`` (rest - fitted, per point) lets ParaView's
-"Warp By Vector" blend from the groomed to the rest shape.
+the material constants (and ``model`` for a Super Space Clothoid result).  The strands are the
+fitted rods -- Super-Helices or clothoids -- (or the rest shape) sampled ``per_element`` times per
+element; ``rest_displacement`` (rest - fitted, per point) lets ParaView's "Warp By Vector" blend from
+the groomed to the rest shape.
 """
 
 from __future__ import annotations
@@ -53,6 +54,8 @@ def strands_polydata(source, per_element: int = 8, shape: str = "fitted"):
         if name in arrays:
             poly.field_data[name] = np.atleast_1d(np.asarray(arrays[name], dtype=np.float64))
     poly.field_data["shape"] = np.array([shape])
+    if samples.model == "clothoid":  # absent for Super-Helices (their files are as before)
+        poly.field_data["model"] = np.array([samples.model])
     return poly
 
 
