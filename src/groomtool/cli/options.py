@@ -86,12 +86,6 @@ def check_invert_options(args) -> None:
         raise UserError(f"--stability-margin must be >= 1 and finite, got {args.stability_margin:g}")
     if args.max_stiffness_factor is not None and not (1 <= args.max_stiffness_factor < np.inf):
         raise UserError(f"--max-stiffness-factor must be >= 1 and finite, got {args.max_stiffness_factor:g}")
-    if getattr(args, "model", "superhelix") == "clothoid":
-        other = [f for f in (getattr(args, "format", None) or ()) if f not in CLOTHOID_FORMATS]
-        if other:
-            raise UserError(f"--format {', '.join(other)}: not available with --model clothoid yet (the exporters "
-                            f"take Super-Helices only; docs/clothoid.md); --model clothoid writes "
-                            f"{', '.join(CLOTHOID_FORMATS)}")
 
 
 def invert_params(args, scale):
