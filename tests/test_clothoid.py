@@ -265,7 +265,7 @@ def test_gravity_force_jacobian_matches_finite_differences(seed, scale, zeros):
     assert np.abs(H - fd).max() <= 1e-7 * np.abs(H).max()
     assert np.allclose(H, np.swapaxes(H, 1, 2), atol=1e-13 * np.abs(H).max())
     # the separable far blocks (j <= i - 2): rhoS A_i [g]x Theta_j
-    A, Theta = cl.gravity_hessian_factors(c)
+    A, Theta = rods_reference.clothoid_gravity_hessian_factors(c)
     gx = np.array([[0, -GRAVITY[2], GRAVITY[1]], [GRAVITY[2], 0, -GRAVITY[0]], [-GRAVITY[1], GRAVITY[0], 0]])
     for i in range(c.max_elements + 1):
         for j in range(i - 1):

@@ -2,6 +2,8 @@
 
 * :func:`clothoid_gravity_force_jacobian_full`: ``rods.clothoid.gravity_force_jacobian`` by the complex
   step with every element recomputed per column (the fast one recomputes only a node's two elements).
+* :func:`clothoid_gravity_hessian_factors`: the factors of the separable far blocks of the clothoid's gravity
+  Hessian (the analytic dF/dq in progress), checked against ``gravity_force_jacobian``.
 * :func:`kinematics_reference`: ``rods.superhelix.kinematics`` with vectorised numpy (the compiled one
   evaluates each element's closed forms in one pass).
 * :func:`gravity_force_jacobian_reference`: ``rods.superhelix.gravity_force_jacobian`` assembled with dense
@@ -45,6 +47,32 @@ def clothoid_gravity_force_jacobian_full(clothoid: cl.SuperClothoid, linear_dens
         F = cl.gravity_force(sub, linear_density, gravity)
         out[sid, :, col] = F.reshape(len(sid), n).imag / cl.COMPLEX_STEP
     return out
+
+
+def clothoid_gravity_hessian_factors(clothoid: cl.SuperClothoid, kin: cl.Kinematics | None = None):
+    """Per node (S, N + 1, 3, 3): A_i = int N_i R^T [Y]x ds and Theta_i = int N_i R ds.  Towards an analytic dF/dq:
+    for j <= i - 2 (disjoint hat supports, psi_j constant = Theta_j over the support of N_i, and by the Jacobi
+    identity d(R^T (Y x g)) = R^T [Y]x [g]x psi) the blocks are separable,
+
+        dF_i/dq_j = rhoS A_i [g]x Theta_j      (and dF_j/dq_i its transpose);
+
+    the blocks with |i - j| <= 1 need nested in-element integrals and are not derived yet (tests: the formula
+    against the complex step). Work towards an analytic clothoid gravity Hessian (docs/clothoid.md, 'Not done'):
+    only the tests use it so far."""
+    kin = cl._with_moments(clothoid, kin)
+    l = clothoid.lengths
+    S, N = l.shape
+    A0, A1 = cl._gravity_element_moments(kin)
+    inv = np.where(l > 0, 1.0 / np.where(l > 0, l, 1.0), 0.0)[..., None, None]
+    RkT = np.swapaxes(kin.R[:, :-1], -1, -2)
+    A = np.zeros((S, N + 1, 3, 3), dtype=A0.dtype)
+    A[:, :-1] -= np.swapaxes(A0 - A1 * inv, -1, -2) @ RkT
+    A[:, 1:] -= np.swapaxes(A1 * inv, -1, -2) @ RkT
+    Ts, Te, _, _ = cl.node_jacobian_terms(kin)
+    Theta = np.zeros_like(A)
+    Theta[:, :-1] += Ts
+    Theta[:, 1:] += Te
+    return A, Theta
 
 
 def transport(v: np.ndarray, t_old: np.ndarray, t_new: np.ndarray) -> np.ndarray:

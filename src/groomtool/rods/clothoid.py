@@ -827,31 +827,6 @@ def gravity_force(clothoid: SuperClothoid, linear_density: float, gravity, kin: 
     return linear_density * F
 
 
-def gravity_hessian_factors(clothoid: SuperClothoid, kin: Kinematics | None = None):
-    """Per node (S, N + 1, 3, 3): A_i = int N_i R^T [Y]x ds and Theta_i = int N_i R ds.  Towards an analytic dF/dq:
-    for j <= i - 2 (disjoint hat supports, psi_j constant = Theta_j over the support of N_i, and by the Jacobi
-    identity d(R^T (Y x g)) = R^T [Y]x [g]x psi) the blocks are separable,
-
-        dF_i/dq_j = rhoS A_i [g]x Theta_j      (and dF_j/dq_i its transpose);
-
-    the blocks with |i - j| <= 1 need nested in-element integrals and are not derived yet (tests: the formula
-    against the complex step)."""
-    kin = _with_moments(clothoid, kin)
-    l = clothoid.lengths
-    S, N = l.shape
-    A0, A1 = _gravity_element_moments(kin)
-    inv = np.where(l > 0, 1.0 / np.where(l > 0, l, 1.0), 0.0)[..., None, None]
-    RkT = np.swapaxes(kin.R[:, :-1], -1, -2)
-    A = np.zeros((S, N + 1, 3, 3), dtype=A0.dtype)
-    A[:, :-1] -= np.swapaxes(A0 - A1 * inv, -1, -2) @ RkT
-    A[:, 1:] -= np.swapaxes(A1 * inv, -1, -2) @ RkT
-    Ts, Te, _, _ = node_jacobian_terms(kin)
-    Theta = np.zeros_like(A)
-    Theta[:, :-1] += Ts
-    Theta[:, 1:] += Te
-    return A, Theta
-
-
 @njit(cache=True)
 def _element_subset_kernel(l, a, b, rows, elems, Q, p, P, Mphi, MX, MZ, ser, mu, tmp):
     """Recompute the listed (row, element) pairs only (:func:`_propagate`); elems < 0 are skipped."""
