@@ -134,6 +134,9 @@ class Groom:
         return Groom.from_strands([self.strand(i) for i in strand_ids], up=self.up, source=self.source)
 
     def scaled(self, factor: float) -> "Groom":
+        """The same groom with every point multiplied by ``factor`` (e.g. 0.01 for a groom read in metres
+        that was in centimetres); offsets, up axis, source and metadata kept.  Public API: the package
+        itself scales while reading (``units``)."""
         return Groom(self.points * factor, self.offsets.copy(), up=self.up, source=self.source,
                      metadata=dict(self.metadata))
 
