@@ -86,3 +86,33 @@ def test_blender_imports_rest_attributes(tmp_path):
                             ("groom:density", np.full(8, float(arrays["density"])))):
         assert str(got[key + ".domain"]) == "CURVE"
         assert np.array_equal(got[key], np.asarray(want_value, dtype=np.float32)), key
+
+
+def test_blender_imports_a_clothoid_result(tmp_path):
+    """A Super Space Clothoid result (issue 20): the clothoid samples, their rest positions and the per-vertex
+    Darboux vectors (groom:darboux, groom:rest_darboux) arrive as point attributes."""
+    from groomtool.examples import example_groom
+    from groomtool.invert import InversionParams, invert_groom
+    from groomtool.rods import clothoid as cl
+
+    groom, _ = example_groom(n_strands=3, seed=4)
+    result = invert_groom(groom, None, InversionParams(model="clothoid", stabilize="none", discrete_rest_data=False))
+    arrays = results.load_arrays(result)
+    samples = fields.sample(arrays)
+    path = write_usd(result, tmp_path / "clothoid.usdc")
+    script = tmp_path / "dump.py"
+    script.write_text(DUMP)
+    run = subprocess.run([PYTHON, str(script), str(path), str(tmp_path / "blender.npz")],
+                         capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr[-2000:]
+    got = dict(np.load(tmp_path / "blender.npz"))
+    rod, rest = results.result_clothoid(arrays), results.result_clothoid(arrays, rest=True)
+    assert np.array_equal(got["counts"], rod.n_elements * 8 + 1)
+    assert np.abs(got["position"] - cl.evaluate(rod, samples.strand, samples.arc)[0]).max() <= 2e-6
+    assert np.abs(got["rest_position"] - cl.evaluate(rest, samples.strand, samples.arc)[0]).max() <= 2e-6
+    for name, r in (("groom:darboux", rod), ("groom:rest_darboux", rest)):
+        assert str(got[name + ".domain"]) == "POINT", name
+        elem, t = cl.locate(r, samples.strand, samples.arc)
+        u = (t / r.lengths[samples.strand, elem])[:, None]
+        want = (1 - u) * r.curvatures[samples.strand, elem] + u * r.curvatures[samples.strand, elem + 1]
+        assert np.abs(got[name] - want).max() <= 1e-6 * np.abs(want).max(), name
