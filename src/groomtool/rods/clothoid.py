@@ -68,6 +68,7 @@ blocks D l_i / 6, block tridiagonal, symmetric positive definite when every l > 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
@@ -665,12 +666,30 @@ def node_jacobian_terms(kin: Kinematics):
     return Ts, Te, Ck @ Ts + Rk @ Xs, Ck @ Te + Rk @ Xe
 
 
-def point_jacobians(clothoid: SuperClothoid, strand, s, kin: Kinematics | None = None):
-    """dC(s)/dq for points on strands: (P, N + 1, 3, 3), block i = dC/dq_i (zero beyond the point's element).
+class _PointTerms(NamedTuple):
+    """What :func:`point_jacobians` and :func:`point_jacobians_rotation` share, per point: the element and its
+    frame, Phi(t) on it, ``full`` (P, N, 1, 1) for the whole elements before the point, [x]x of the point
+    (P, 1, 3, 3), the node terms of :func:`node_jacobian_terms` at the point's strand (P, N, 3, 3) and the hat
+    splits of the point's own element over [0, t] with [p(t)]x."""
 
-    Whole elements k < e: [C_k - x]x R_k int N_i Phi + R_k int N_i X; the point's own element e over [0, t]:
-    R_e (int_0^t N_i X - [p(t)]x int_0^t N_i Phi).  Also returns the element index of each point (P,).
-    """
+    elem: np.ndarray
+    Re: np.ndarray
+    Phi: np.ndarray
+    full: np.ndarray
+    xs: np.ndarray
+    Ts: np.ndarray
+    Te: np.ndarray
+    Bs: np.ndarray
+    Be: np.ndarray
+    As: np.ndarray
+    Ae: np.ndarray
+    Ys: np.ndarray
+    Ye: np.ndarray
+    px: np.ndarray
+
+
+def _point_terms(clothoid: SuperClothoid, strand, s, kin: Kinematics | None) -> _PointTerms:
+    """The shared set-up of the point Jacobians (:class:`_PointTerms`)."""
     kin = _with_moments(clothoid, kin)
     strand = np.ascontiguousarray(strand, dtype=np.int64)
     elem, t = locate(clothoid, strand, s)
@@ -678,24 +697,35 @@ def point_jacobians(clothoid: SuperClothoid, strand, s, kin: Kinematics | None =
     Re = kin.R[strand, elem]
     x = kin.C[strand, elem] + np.einsum("pab,pb->pa", Re, p)
     Ts, Te, Bs, Be = node_jacobian_terms(kin)
-    n_pts = len(strand)
-    N = clothoid.max_elements
-    k = np.arange(N)[None, :]
-    full = (k < elem[:, None])[..., None, None]
-    xs = skew(x)[:, None]
-    Js = np.where(full, Bs[strand] - xs @ Ts[strand], 0.0)
-    Je = np.where(full, Be[strand] - xs @ Te[strand], 0.0)
-    J = np.zeros((n_pts, N + 1, 3, 3), dtype=Js.dtype)
-    J[:, :-1] += Js
-    J[:, 1:] += Je
+    full = (np.arange(clothoid.max_elements)[None, :] < elem[:, None])[..., None, None]
     le = clothoid.lengths[strand, elem]
     As, Ae = _hat_split(Mphi, le)
     Ys, Ye = _hat_split(MX[:, :2], le)
-    px = skew(p)
-    idx = np.arange(n_pts)
-    J[idx, elem] += Re @ (Ys - px @ As)
-    J[idx, elem + 1] += Re @ (Ye - px @ Ae)
-    return J, elem
+    return _PointTerms(elem, Re, Phi, full, skew(x)[:, None], Ts[strand], Te[strand], Bs[strand], Be[strand],
+                       As, Ae, Ys, Ye, skew(p))
+
+
+def _add_own_element(J: np.ndarray, pt: _PointTerms) -> None:
+    """The point's own element e over [0, t]: R_e (int_0^t N_i X - [p(t)]x int_0^t N_i Phi), added to J."""
+    idx = np.arange(len(pt.elem))
+    J[idx, pt.elem] += pt.Re @ (pt.Ys - pt.px @ pt.As)
+    J[idx, pt.elem + 1] += pt.Re @ (pt.Ye - pt.px @ pt.Ae)
+
+
+def point_jacobians(clothoid: SuperClothoid, strand, s, kin: Kinematics | None = None):
+    """dC(s)/dq for points on strands: (P, N + 1, 3, 3), block i = dC/dq_i (zero beyond the point's element).
+
+    Whole elements k < e: [C_k - x]x R_k int N_i Phi + R_k int N_i X; the point's own element e over [0, t]:
+    R_e (int_0^t N_i X - [p(t)]x int_0^t N_i Phi).  Also returns the element index of each point (P,).
+    """
+    pt = _point_terms(clothoid, strand, s, kin)
+    Js = np.where(pt.full, pt.Bs - pt.xs @ pt.Ts, 0.0)
+    Je = np.where(pt.full, pt.Be - pt.xs @ pt.Te, 0.0)
+    J = np.zeros((len(pt.elem), clothoid.max_elements + 1, 3, 3), dtype=Js.dtype)
+    J[:, :-1] += Js
+    J[:, 1:] += Je
+    _add_own_element(J, pt)
+    return J, pt.elem
 
 
 # --------------------------------------------------------------------------- energy and forces
@@ -907,35 +937,20 @@ def point_jacobians_rotation(clothoid: SuperClothoid, strand, s, kin: Kinematics
     psi(s) = int_0^s R dOmega is the world rotation vector of the frame at s (module docstring), so with the hat
     functions, Jw_i(s) = int_0^s N_i R dtau: R_k int_k N_i Phi over the whole elements k before s (the Theta
     terms of :func:`node_jacobian_terms`) plus R_e int_0^t N_i Phi on the point's own element."""
-    kin = _with_moments(clothoid, kin)
-    strand = np.ascontiguousarray(strand, dtype=np.int64)
-    elem, t = locate(clothoid, strand, s)
-    Phi, p, Mphi, MX = _partial(clothoid, kin, strand, elem, t)
-    Re = kin.R[strand, elem]
-    x = kin.C[strand, elem] + np.einsum("pab,pb->pa", Re, p)
-    Ts, Te, Bs, Be = node_jacobian_terms(kin)
-    n_pts = len(strand)
-    N = clothoid.max_elements
-    full = (np.arange(N)[None, :] < elem[:, None])[..., None, None]
-    xs = skew(x)[:, None]
-    Tsp = np.where(full, Ts[strand], 0.0)
-    Tep = np.where(full, Te[strand], 0.0)
-    J = np.zeros((n_pts, N + 1, 3, 3), dtype=Tsp.dtype)
-    J[:, :-1] += np.where(full, Bs[strand], 0.0) - xs @ Tsp
-    J[:, 1:] += np.where(full, Be[strand], 0.0) - xs @ Tep
+    pt = _point_terms(clothoid, strand, s, kin)
+    Tsp = np.where(pt.full, pt.Ts, 0.0)
+    Tep = np.where(pt.full, pt.Te, 0.0)
+    J = np.zeros((len(pt.elem), clothoid.max_elements + 1, 3, 3), dtype=Tsp.dtype)
+    J[:, :-1] += np.where(pt.full, pt.Bs, 0.0) - pt.xs @ Tsp
+    J[:, 1:] += np.where(pt.full, pt.Be, 0.0) - pt.xs @ Tep
     Jw = np.zeros_like(J)
     Jw[:, :-1] += Tsp
     Jw[:, 1:] += Tep
-    le = clothoid.lengths[strand, elem]
-    As, Ae = _hat_split(Mphi, le)
-    Ys, Ye = _hat_split(MX[:, :2], le)
-    px = skew(p)
-    idx = np.arange(n_pts)
-    J[idx, elem] += Re @ (Ys - px @ As)
-    J[idx, elem + 1] += Re @ (Ye - px @ Ae)
-    Jw[idx, elem] += Re @ As
-    Jw[idx, elem + 1] += Re @ Ae
-    return J, Jw, Re @ Phi, elem
+    _add_own_element(J, pt)
+    idx = np.arange(len(pt.elem))
+    Jw[idx, pt.elem] += pt.Re @ pt.As
+    Jw[idx, pt.elem + 1] += pt.Re @ pt.Ae
+    return J, Jw, pt.Re @ pt.Phi, pt.elem
 
 
 def node_velocities(clothoid: SuperClothoid, rates: np.ndarray, kin: Kinematics | None = None) -> np.ndarray:
