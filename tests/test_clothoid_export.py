@@ -360,3 +360,22 @@ def test_cli_invert_clothoid_to_usd_and_export(tmp_path):
     assert main(["export", str(out), "--format", "vtp", "--format", "hair", "--format", "obj"]) == EXIT_OK
     for name in ("groom.vtp", "rest_shape.hair", "rest_shape.obj"):
         assert (out / name).is_file(), name
+
+
+def test_groom_view_of_a_clothoid_result(saved, tmp_path, monkeypatch):
+    """The viewer draws from the same fields: a screenshot of the clothoid result is not blank."""
+    pytest.importorskip("pyvista", reason="pyvista is not installed")
+    import subprocess
+    import sys
+
+    probe = ("import pyvista as pv; p = pv.Plotter(off_screen=True, window_size=(64, 64)); "
+             "p.add_mesh(pv.Sphere()); img = p.screenshot(); assert img.std() > 0, 'blank render'")
+    if subprocess.run([sys.executable, "-c", probe], capture_output=True, timeout=120).returncode != 0:
+        pytest.skip("pyvista/vtk cannot render off-screen here")
+    from PIL import Image
+
+    monkeypatch.delenv("DISPLAY", raising=False)
+    assert main(["view", str(saved[0]), "--rest", "--screenshot", str(tmp_path / "v.png"), "--size", "160", "120"]) \
+        == EXIT_OK
+    with Image.open(tmp_path / "v.png") as im:
+        assert im.size == (160, 120) and np.asarray(im.convert("RGB")).std() > 10.0
