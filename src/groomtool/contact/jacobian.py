@@ -22,17 +22,25 @@ from ..rods import superhelix as sh
 CLOTHOID_CHUNK = 4096  # contacts per batch of dense clothoid point Jacobians
 
 
+def _setup(rod, contacts, kin):
+    """What both forms of H start from: the kinematics (computed when not given), the flat dof offsets of the
+    strands (elements of a Super-Helix, nodes of a Super Space Clothoid), the number of columns, and the
+    contact frames (m, 3, 3), contiguous; None without contacts."""
+    kin = kin if kin is not None else (cl if isinstance(rod, cl.SuperClothoid) else sh).kinematics(rod)
+    offsets = rod.flat_offsets()
+    m = len(contacts.strand_a)
+    frames = np.ascontiguousarray(contacts.frame, dtype=np.float64).reshape(m, 3, 3) if m else None
+    return kin, offsets, 3 * int(offsets[-1]), frames
+
+
 def clothoid_contact_jacobian(rod: cl.SuperClothoid, contacts, kin: cl.Kinematics | None = None) -> sp.csr_matrix:
     """H for Super Space Clothoids, (3m, 3 n_nodes): H_i = F_i [J_a, -J_b] with J = dC/dq at the nodes
     (:func:`groomtool.rods.clothoid.point_jacobians`: blocks of nodes 0 .. elem + 1 of the point's strand),
     assembled in batches of contacts from the dense point Jacobians (a self-contact's blocks are summed)."""
-    kin = kin if kin is not None else cl.kinematics(rod)
-    node_offsets = rod.flat_offsets()
-    n_dofs = 3 * int(node_offsets[-1])
-    m = len(contacts.strand_a)
-    if m == 0:
+    kin, node_offsets, n_dofs, frames = _setup(rod, contacts, kin)
+    if frames is None:
         return sp.csr_matrix((0, n_dofs))
-    frames = np.asarray(contacts.frame, dtype=np.float64).reshape(m, 3, 3)
+    m = len(frames)
     rows, cols, vals = [], [], []
     for side, strands, arcs, sign in (("a", contacts.strand_a, contacts.s_a, 1.0),
                                       ("b", contacts.strand_b, contacts.s_b, -1.0)):
@@ -83,13 +91,10 @@ def contact_jacobian(helix, contacts, kin=None) -> sp.csr_matrix:
     """
     if isinstance(helix, cl.SuperClothoid):
         return clothoid_contact_jacobian(helix, contacts, kin)
-    kin = kin if kin is not None else sh.kinematics(helix)
-    dof_offsets = helix.flat_offsets()
-    n_dofs = 3 * int(dof_offsets[-1])
-    m = len(contacts.strand_a)
-    if m == 0:
+    kin, dof_offsets, n_dofs, frames = _setup(helix, contacts, kin)
+    if frames is None:
         return sp.csr_matrix((0, n_dofs))
-    frames = np.ascontiguousarray(contacts.frame, dtype=np.float64).reshape(m, 3, 3)
+    m = len(frames)
     strand_a = np.ascontiguousarray(contacts.strand_a, dtype=np.int64)
     strand_b = np.ascontiguousarray(contacts.strand_b, dtype=np.int64)
     elem_a, x_a, own_a = sh.point_jacobian_parts(helix, strand_a, np.asarray(contacts.s_a), kin)
