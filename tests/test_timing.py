@@ -78,3 +78,17 @@ def test_reset_measures_again():
     bar.update(1)
     assert _eta(bar) is None  # a first item again, not extrapolated
     bar.close()
+
+
+def test_own_estimate_bar_shows_the_callers_postfix_only():
+    """simulate_progress.StepProgress writes its own time left (over several runs): no rate, no time left."""
+    import io
+
+    stream = io.StringIO()
+    bar = timing.progress(10, "simulate", quiet=False, unit="step", own_estimate=True, file=stream)
+    bar.set_postfix_str("70 ms/step, ~1 s left", refresh=False)
+    bar.update(5)
+    text = str(bar)
+    bar.close()
+    assert "70 ms/step, ~1 s left]" in text and "<" not in text and "step/s" not in text
+    assert "simulate" in stream.getvalue()

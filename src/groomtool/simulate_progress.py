@@ -12,6 +12,8 @@ from __future__ import annotations
 import sys
 import time
 
+from .timing import progress
+
 
 class StepProgress:
     """Progress over ``runs`` = [(name, steps), ...] simulated one after the other.
@@ -45,11 +47,8 @@ class StepProgress:
     def _open(self) -> None:
         if not self.enabled or self.index >= len(self.runs):
             return
-        from tqdm.auto import tqdm
-
         name, steps = self.runs[self.index]
-        self.bar = tqdm(total=steps, desc=name, unit="step", leave=False, file=self.stream,
-                        bar_format="{desc}: {percentage:3.0f}%|{bar}| {n_fmt}/{total_fmt} [{elapsed}{postfix}]")
+        self.bar = progress(steps, name, quiet=False, unit="step", own_estimate=True, file=self.stream)
         self.bar.set_postfix_str("first step: loading kernels (compiled on a first run only), first factorisations",
                                  refresh=True)
 

@@ -29,23 +29,29 @@ class Timer:
         return time.perf_counter() - self._t0
 
 
-def progress(total, desc, quiet, unit="strand", budget: bool = False):
-    """A tqdm bar (off when ``quiet``), left off the screen when done.  ``budget``: ``total`` is an upper
-    bound (a sweep budget a solver usually stops well before), so the bar shows no time left extrapolated
-    to it (that read 42 minutes for a 6 s solve); its postfix says what is known instead.
+def progress(total, desc, quiet, unit="strand", budget: bool = False, own_estimate: bool = False, file=None):
+    """A tqdm bar (off when ``quiet``), left off the screen when done: the one form of the package's progress
+    bars.  ``budget``: ``total`` is an upper bound (a sweep budget a solver usually stops well before), so the
+    bar shows no time left extrapolated to it (that read 42 minutes for a 6 s solve); its postfix says what is
+    known instead.  ``own_estimate``: the caller writes its own time left in the postfix
+    (simulate_progress.StepProgress, over several runs), so the bar shows neither a time left nor a rate.
+    ``file``: the stream (default: tqdm's, stderr).
 
     The time left is measured on the items after the first, which pays what is done once for all (loading
     numba kernels, batched set-up: "stability with contacts" computes every strand's contact Hessian before
     its first strand, 1.5-2.3 s, then takes 0.2-0.5 s for the other 199; extrapolated from the first, its bar
     read minutes), and shown only once ``ETA_AFTER_ITEMS`` of them took ``ETA_AFTER_S`` seconds; until then
     it reads ``?``."""
-    fmt = "{desc}: {percentage:3.0f}%|{bar}| {n_fmt}/{total_fmt} [{elapsed}, {rate_fmt}{postfix}]" if budget else None
-    return _bar_class()(total=total, desc=desc, disable=quiet, unit=unit, leave=False, bar_format=fmt)
+    fmt = _BUDGET if budget else _OWN_ESTIMATE if own_estimate else None
+    stream = {} if file is None else {"file": file}
+    return _bar_class()(total=total, desc=desc, disable=quiet, unit=unit, leave=False, bar_format=fmt, **stream)
 
 
 ETA_AFTER_ITEMS = 2  # items after the first before a time left is shown
 ETA_AFTER_S = 0.5  # ... and seconds they took
 _UNMEASURED = "{desc}: {percentage:3.0f}%|{bar}| {n_fmt}/{total_fmt} [{elapsed}<?{postfix}]"
+_BUDGET = "{desc}: {percentage:3.0f}%|{bar}| {n_fmt}/{total_fmt} [{elapsed}, {rate_fmt}{postfix}]"
+_OWN_ESTIMATE = "{desc}: {percentage:3.0f}%|{bar}| {n_fmt}/{total_fmt} [{elapsed}{postfix}]"
 
 
 @functools.cache
@@ -69,7 +75,7 @@ def _bar_class():
         @property
         def format_dict(self):
             d = super().format_dict
-            if self.disable or self.bar_format is not None:  # off, or a budget bar (no time left shown)
+            if self.disable or self.bar_format is not None:  # off, or a bar that shows no time left of its own
                 return d
             done = self.n - self._first[1] if self._first else 0
             took = self._time() - self._first[0] if self._first else 0.0

@@ -36,6 +36,7 @@ from threadpoolctl import threadpool_limits
 from ..groom import Groom
 from ..rods import clothoid as cl
 from ..rods import superhelix as sh
+from ..timing import progress as progress_bar
 from .fitter import DEFAULT_TOLERANCE_M, FitResult, fit_groom
 from .sampling import vertex_arc_lengths
 
@@ -312,8 +313,7 @@ def fit_clothoid_groom(groom: Groom, tolerance: float | None = DEFAULT_TOLERANCE
     passes = 0
     bar = None
     if progress:
-        from tqdm.auto import tqdm
-        bar = tqdm(total=S, desc="fit (clothoid)", unit="strand")
+        bar = progress_bar(S, "fit (clothoid)", quiet=False, unit="strand")
     while len(active):
         passes += 1
         order = active[np.lexsort((counts[active], n_now[active]))]

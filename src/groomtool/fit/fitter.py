@@ -18,6 +18,7 @@ import numpy as np
 
 from ..groom import Groom, GroomError
 from ..rods.superhelix import SuperHelix
+from ..timing import progress as progress_bar
 from .cohelicity import constraint_residuals, relax_points
 from .error import strand_errors
 from .helix import helix_residuals, solve_chain, solve_helix
@@ -247,8 +248,7 @@ def fit_groom(groom: Groom, tolerance: float | None = DEFAULT_TOLERANCE_M, relat
     active = np.arange(S)
     bar = None
     if progress:
-        from tqdm.auto import tqdm
-        bar = tqdm(total=S, desc="fit", unit="strand")
+        bar = progress_bar(S, "fit", quiet=False, unit="strand")
     timings["prepare"] = _clock() - t_start
     while len(active):
         p = len(passes)
