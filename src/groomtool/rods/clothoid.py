@@ -67,7 +67,7 @@ blocks D l_i / 6, block tridiagonal, symmetric positive definite when every l > 
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
@@ -95,7 +95,7 @@ def skew(v: np.ndarray) -> np.ndarray:
 
 # --------------------------------------------------------------------------- data
 @dataclass
-class SuperClothoid:
+class SuperClothoid(superhelix.PaddedRods):
     """A groom of Super Space Clothoids, padded to ``max_elements`` elements per strand.
 
     root_positions (S, 3), root_frames (S, 3, 3) with columns (n0 tangent, n1, n2), lengths (S, N) element
@@ -103,51 +103,15 @@ class SuperClothoid:
     (0 beyond node n_elements), n_elements (S,).  Omega is linear between consecutive nodes.
     """
 
-    root_positions: np.ndarray
-    root_frames: np.ndarray
-    lengths: np.ndarray
-    curvatures: np.ndarray
-    n_elements: np.ndarray = field(default=None)
-
-    def __post_init__(self) -> None:
-        self.root_positions = np.asarray(self.root_positions, dtype=np.float64).reshape(-1, 3)
-        self.root_frames = np.asarray(self.root_frames, dtype=np.float64).reshape(-1, 3, 3)
-        self.lengths = np.asarray(self.lengths, dtype=np.float64)
-        if self.lengths.ndim == 1:
-            self.lengths = self.lengths[None]
-        dtype = np.complex128 if np.iscomplexobj(self.curvatures) else np.float64
+    def _curvatures(self, curvatures) -> np.ndarray:
+        dtype = np.complex128 if np.iscomplexobj(curvatures) else np.float64
         S, N = self.lengths.shape
-        self.curvatures = np.asarray(self.curvatures, dtype=dtype).reshape(S, N + 1, 3)
-        if self.n_elements is None:
-            self.n_elements = np.count_nonzero(self.lengths > 0, axis=1)
-        self.n_elements = np.asarray(self.n_elements, dtype=np.int64)
-
-    @property
-    def n_strands(self) -> int:
-        return self.lengths.shape[0]
-
-    @property
-    def max_elements(self) -> int:
-        return self.lengths.shape[1]
-
-    @property
-    def element_mask(self) -> np.ndarray:
-        """(S, N) True on real elements."""
-        return np.arange(self.max_elements)[None, :] < self.n_elements[:, None]
+        return np.asarray(curvatures, dtype=dtype).reshape(S, N + 1, 3)
 
     @property
     def node_mask(self) -> np.ndarray:
         """(S, N + 1) True on real nodes (the degrees of freedom)."""
         return np.arange(self.max_elements + 1)[None, :] <= self.n_elements[:, None]
-
-    @property
-    def element_starts(self) -> np.ndarray:
-        """(S, N + 1) arc length S_j at each node."""
-        return np.concatenate([np.zeros((self.n_strands, 1)), np.cumsum(self.lengths, axis=1)], axis=1)
-
-    @property
-    def strand_lengths(self) -> np.ndarray:
-        return self.lengths.sum(axis=1)
 
     def starts_and_slopes(self):
         """a_j = q_j and b_j = (q_{j+1} - q_j) / l_j per element, (S, N, 3) each (b = 0 on padding)."""
@@ -156,9 +120,6 @@ class SuperClothoid:
         safe = np.where(l > 0, l, 1.0)
         b = np.where(l > 0, (q[:, 1:] - q[:, :-1]) / safe, 0.0)
         return np.ascontiguousarray(q[:, :-1]), np.ascontiguousarray(b)
-
-    def with_curvatures(self, curvatures: np.ndarray) -> "SuperClothoid":
-        return SuperClothoid(self.root_positions, self.root_frames, self.lengths, curvatures, self.n_elements)
 
     def flat_offsets(self) -> np.ndarray:
         """(S + 1,) offsets of each strand's nodes in the flat node list."""

@@ -88,13 +88,10 @@ def local_position_jacobian(t: np.ndarray, omega: np.ndarray) -> np.ndarray:
 
 # --------------------------------------------------------------------------- data
 @dataclass
-class SuperHelix:
-    """A groom of Super-Helices, padded to ``max_elements`` elements per strand.
-
-    root_positions (S, 3), root_frames (S, 3, 3) with columns (n0 tangent, n1, n2),
-    lengths (S, N) element lengths (0 for padding), curvatures (S, N, 3) = q = (twist, kappa1, kappa2)
-    per element (0 for padding), n_elements (S,).
-    """
+class PaddedRods:
+    """What a groom of Super-Helices and one of Super Space Clothoids share: S strands padded to
+    ``max_elements`` elements each, root positions (S, 3) and frames (S, 3, 3), element lengths (S, N) (0 for
+    padding), curvatures (per element or per node: the model's ``_curvatures``) and n_elements (S,)."""
 
     root_positions: np.ndarray
     root_frames: np.ndarray
@@ -108,10 +105,14 @@ class SuperHelix:
         self.lengths = np.asarray(self.lengths, dtype=np.float64)
         if self.lengths.ndim == 1:
             self.lengths = self.lengths[None]
-        self.curvatures = np.asarray(self.curvatures, dtype=np.float64).reshape(self.lengths.shape + (3,))
+        self.curvatures = self._curvatures(self.curvatures)
         if self.n_elements is None:
             self.n_elements = np.count_nonzero(self.lengths > 0, axis=1)
         self.n_elements = np.asarray(self.n_elements, dtype=np.int64)
+
+    def _curvatures(self, curvatures) -> np.ndarray:
+        """The curvatures as the model stores them (dtype, shape from ``lengths``)."""
+        raise NotImplementedError
 
     @property
     def n_strands(self) -> int:
@@ -135,8 +136,22 @@ class SuperHelix:
     def strand_lengths(self) -> np.ndarray:
         return self.lengths.sum(axis=1)
 
-    def with_curvatures(self, curvatures: np.ndarray) -> "SuperHelix":
-        return SuperHelix(self.root_positions, self.root_frames, self.lengths, curvatures, self.n_elements)
+    def with_curvatures(self, curvatures: np.ndarray):
+        """The same strands with other curvatures (same model)."""
+        return type(self)(self.root_positions, self.root_frames, self.lengths, curvatures, self.n_elements)
+
+
+@dataclass
+class SuperHelix(PaddedRods):
+    """A groom of Super-Helices, padded to ``max_elements`` elements per strand.
+
+    root_positions (S, 3), root_frames (S, 3, 3) with columns (n0 tangent, n1, n2),
+    lengths (S, N) element lengths (0 for padding), curvatures (S, N, 3) = q = (twist, kappa1, kappa2)
+    per element (0 for padding), n_elements (S,).
+    """
+
+    def _curvatures(self, curvatures) -> np.ndarray:
+        return np.asarray(curvatures, dtype=np.float64).reshape(self.lengths.shape + (3,))
 
     # flat (unpadded) views: the generalised coordinates of all strands, strand after strand
     def flat_offsets(self) -> np.ndarray:
