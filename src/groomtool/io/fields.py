@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..groom import GroomError
+from ..rods import clothoid as cl
 from .results import result_model, result_rod, rod_module
 
 
@@ -301,7 +302,7 @@ ROD_PREFIXES = ("der_", "cosserat_", "node_")  #: rest.npz keys of the discrete-
 
 def _light(mod) -> dict:
     """kinematics() keywords for positions and frames only (the clothoid's moments are for derivatives)."""
-    return {"moments": False} if mod.__name__.endswith("clothoid") else {}
+    return {"moments": False} if mod is cl else {}
 
 
 def _rest_arc(arrays: dict, points: np.ndarray, offsets: np.ndarray) -> np.ndarray:
