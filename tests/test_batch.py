@@ -269,6 +269,19 @@ def test_alembic_is_a_batch_output_format(client, data, tmp_path):
                         quiet=True, formats=("npz", "fbx"))
 
 
+def test_clothoid_batches_write_the_exporters_outputs(client, data, tmp_path):
+    """--model clothoid with --format usd: the batch writes the clothoid's USD beside rest.npz (the
+    exporters take both models), one complete set per groom."""
+    out = tmp_path / "out"
+    summary = batch.run_batch(inputs(data, ["g0"]), out, head=data / "head.obj", params={**PARAMS, "model": "clothoid"},
+                              client=client, quiet=True, formats=("npz", "json", "usd"))
+    assert summary.rows[0]["status"] == "ok", summary.rows
+    assert sorted(p.name for p in (out / "g0").iterdir()) == ["groom.usdc", "report.json", "rest.npz"]
+    from groomtool.io.results import read_result
+
+    assert read_result(out / "g0").model == "clothoid"
+
+
 def test_a_worker_killed_mid_write_is_retried_and_nothing_is_half_written(client, data, tmp_path):
     out = tmp_path / "out"
     marker = tmp_path / "killed"
@@ -365,12 +378,3 @@ def test_a_worker_that_always_dies_is_reported_after_the_retries(client, data, t
     assert summary.exit_code == 1
     assert not (out / "g2").exists()
     assert_nothing_half_written(out)
-
-
-def test_clothoid_batches_refuse_the_exporters_up_front(data, tmp_path):
-    """--model clothoid with --format usd (the exporters take Super-Helices only): one clear error before any
-    cluster starts or any groom is computed, as groom invert does."""
-    with pytest.raises(GroomError, match="not available with --model clothoid"):
-        batch.run_batch(inputs(data, ["g0"]), tmp_path / "out", head=data / "head.obj",
-                        params={**PARAMS, "model": "clothoid"}, quiet=True, formats=("npz", "json", "usd"))
-    assert not (tmp_path / "out" / "g0").exists()

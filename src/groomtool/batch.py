@@ -458,10 +458,6 @@ def run_batch(inputs, outdir, head=None, params=None, *, units="m", scale: float
     unknown = sorted(set(formats) - set(DEFAULT_FORMATS) - set(_extra_formats()))
     if unknown:
         raise GroomError(f"unknown output format(s) {', '.join(unknown)}")
-    exported = [f for f in formats if f in _extra_formats()]
-    if exported and getattr(params, "model", "superhelix") == "clothoid":
-        raise GroomError(f"--format {', '.join(exported)}: not available with --model clothoid yet (the exporters take "
-                         "Super-Helices only; docs/clothoid.md)")
     if "abc" in formats and importlib.util.find_spec("alembic3d") is None:  # once here, not once per groom
         from .io.alembic import INSTALL
 

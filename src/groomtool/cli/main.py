@@ -111,8 +111,8 @@ def build_parser() -> argparse.ArgumentParser:
                           "always written: check, view, simulate and export read them")
     inv.add_argument("--model", choices=list(MODEL_CHOICES), default="superhelix",
                      help="rod model: superhelix (default; piecewise helices, C1) or clothoid (Super Space Clothoids: "
-                          "curvature linear per element and continuous, C2; docs/clothoid.md; groom check and simulate "
-                          "read its results, view and the exporters not yet)")
+                          "curvature linear per element and continuous, C2; docs/clothoid.md; every command and exporter "
+                          "reads its results)")
     add_material_options(inv)
     inv.add_argument("-q", "--quiet", action="store_true", help="no progress bars and no summary")
 
