@@ -398,3 +398,14 @@ def test_progress_shows_the_certified_bound_and_sweeps_to_go(draped, sphere, cap
     # the sweep total is a budget, not a forecast: no time left extrapolated to it ("[00:01<42:00, ...")
     solve_lines = [line for line in err.replace("\r", "\n").split("\n") if line.startswith("contact solve")]
     assert solve_lines and not any(re.search(r"\[\d+:\d+<", line) for line in solve_lines)
+
+
+def test_the_api_takes_the_deprecated_max_iterations_too():
+    """groomtool.inversion_params (groomtool.invert, groom batch's params) passes the old name on to
+    InversionParams, which warns, instead of refusing it as unknown."""
+    from groomtool.api import inversion_params
+
+    with pytest.warns(DeprecationWarning, match="max_sweeps"):
+        assert inversion_params(max_iterations=9).max_sweeps == 9
+    with pytest.raises(TypeError, match="unknown parameter"):
+        inversion_params(max_iteration=9)

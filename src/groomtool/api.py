@@ -51,7 +51,8 @@ def inversion_params(**params) -> InversionParams:
     """``InversionParams`` from keyword arguments: its own fields (tolerance, contacts, guess, gamma,
     solver, ...) and the material's (young_modulus, shear_modulus, radius, density, friction,
     gravity), or ``material=Material(...)``.  Unknown names raise TypeError."""
-    unknown = sorted(set(params) - set(MATERIAL_FIELDS) - set(PARAM_FIELDS) - {"material"})
+    # max_iterations: InversionParams' deprecated alias of max_sweeps (it warns)
+    unknown = sorted(set(params) - set(MATERIAL_FIELDS) - set(PARAM_FIELDS) - {"material", "max_iterations"})
     if unknown:
         raise TypeError(f"unknown parameter(s) {', '.join(unknown)}; material: {', '.join(MATERIAL_FIELDS)}; "
                         f"inversion: {', '.join(PARAM_FIELDS)}")

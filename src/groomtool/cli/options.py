@@ -17,7 +17,6 @@ EXIT_OK, EXIT_USER_ERROR, EXIT_NOT_CONVERGED = 0, 1, 2
 EXIT_INTERNAL_ERROR = 3  # an unexpected exception: a bug, reported in one line (GROOM_DEBUG=1: traceback)
 UP_CHOICES = ["x", "y", "z", "-x", "-y", "-z"]
 MODEL_CHOICES = ("superhelix", "clothoid")  # groom invert --model
-CLOTHOID_FORMATS = ("npz", "obj", "json")  # what groom invert --model clothoid writes (no USD/Alembic/VTP/hair yet)
 MAX_ROD_SEGMENTS = 10_000  # per strand: beyond, the discrete rest data would not fit in memory
 
 
