@@ -8,7 +8,6 @@ the stiffening rule stabilize.py.
 
 from __future__ import annotations
 
-import functools
 import math
 import warnings
 from dataclasses import dataclass, field
@@ -21,6 +20,7 @@ from .groom import Groom, GroomError
 from .inverse_problem import (MODELS, build_inverse_problem, cone_violation, equilibrium_residuals,
                               isolated_rest_curvatures, model_name, rest_curvatures_with_contacts, rod_module,
                               solve_inverse_problem, strand_stiffness)
+from .deprecation import rename_field
 from .material import Material
 from .rods import superhelix as sh
 from .rods.cosserat import cosserat_rest_data
@@ -116,30 +116,7 @@ class InversionParams:
             raise ValueError(f"max stiffness factor must be >= 1, got {self.max_stiffness_factor}")
 
 
-_dataclass_init = InversionParams.__init__
-
-
-@functools.wraps(_dataclass_init)
-def _init_with_deprecated_max_iterations(self, *args, max_iterations=None, **kwargs):
-    """The dataclass's __init__, which also takes ``max_iterations``, the deprecated name of ``max_sweeps``
-    (a wrapper rather than an InitVar: dataclasses.replace would pass an InitVar on, over a new max_sweeps)."""
-    if max_iterations is not None:
-        warnings.warn("InversionParams(max_iterations=...) is deprecated: use max_sweeps=...", DeprecationWarning,
-                      stacklevel=2)
-        if "max_sweeps" in kwargs:
-            raise TypeError("give max_sweeps, not both max_sweeps and its deprecated name max_iterations")
-        kwargs["max_sweeps"] = max_iterations
-    _dataclass_init(self, *args, **kwargs)
-
-
-def _deprecated_max_iterations(self) -> int:
-    """Deprecated, read-only: the sweep budget is ``max_sweeps``."""
-    warnings.warn("InversionParams.max_iterations is deprecated: use max_sweeps", DeprecationWarning, stacklevel=2)
-    return self.max_sweeps
-
-
-InversionParams.__init__ = _init_with_deprecated_max_iterations
-InversionParams.max_iterations = property(_deprecated_max_iterations)
+rename_field(InversionParams, "max_iterations", "max_sweeps")  # deprecated name (before issue 18)
 
 
 # --------------------------------------------------------------------------- the whole job

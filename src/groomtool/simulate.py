@@ -51,6 +51,7 @@ import numpy as np
 import scipy.sparse as sp
 from threadpoolctl import threadpool_limits
 
+from .deprecation import rename_field
 from .material import Material
 from .rods import clothoid as cl
 from .rods import dynamics as dyn
@@ -105,7 +106,7 @@ class SimulationParams:
     detection_skin: float | None = None
     solver: str = "auto"
     solver_tolerance: float = 1e-8
-    max_iterations: int = 2000
+    max_sweeps: int = 2000  # the contact solver's sweep budget per step
     refresh_warm_start: bool = True  # one sweep from an accepted warm start (solve_contacts)
     keep_step_corrections: bool = True  # reuse a modified strand's step-matrix correction (factor_step_matrix)
     # Super Space Clothoids: compute their velocity terms A (dyn.clothoid_velocity_terms: exact, by complex steps,
@@ -124,6 +125,11 @@ class SimulationParams:
             raise ValueError(f"detection_skin must be >= 0, got {self.detection_skin}")
         if not (self.rotational_inertia_scale > 0):
             raise ValueError("rotational_inertia_scale must be > 0")
+        if self.max_sweeps < 1:
+            raise ValueError(f"max_sweeps must be >= 1, got {self.max_sweeps}")
+
+
+rename_field(SimulationParams, "max_iterations", "max_sweeps")  # deprecated name (before issue 18)
 
 
 # --------------------------------------------------------------------------- state and results
@@ -485,7 +491,7 @@ class Simulator:
                 r, err, iterations, status = r1, err1, 1, "warm_start_swept"
         if not err <= p.solver_tolerance:
             res = solve_contact_problem(problem, law="coulomb", method=p.solver, tol=p.solver_tolerance,
-                                        max_iter=p.max_iterations, r0=r, scale=scale)
+                                        max_iter=p.max_sweeps, r0=r, scale=scale)
             r, iterations, status = np.asarray(res.r), int(res.iterations), str(res.status)
             err = float(res.residual)
         if self.clothoid:
