@@ -117,6 +117,51 @@ def test_workers_run_one_thread(client):
                for v in env.values())
 
 
+def test_local_workers_fork_from_a_preloaded_server(client):
+    """The local workers fork from multiprocessing's forkserver, which imported groomtool and ran the warm-up
+    (the kernels an inversion uses, loaded) before the first task: none of it is paid in the first task,
+    nor once per worker."""
+    def state():
+        import sys
+
+        import groomtool.rods.superhelix as superhelix
+        from groomtool.warmup import _dispatchers
+
+        return {"invert": "groomtool.invert" in sys.modules,
+                "warmed": "groomtool.examples" in sys.modules,  # imported by warm_up only, never by a task
+                "kernels": sum(len(d.overloads) for d in _dispatchers(superhelix)),
+                "parent": os.getppid(), "preload_env": os.environ.get(batch.PRELOAD_ENV)}
+
+    got = client.run(state)
+    assert len(got) == 2
+    for s in got.values():
+        assert s["invert"] and s["warmed"] and s["kernels"] > 0, s
+        assert s["parent"] != os.getpid()  # forked by the server, not spawned by this process's nannies
+        assert s["preload_env"] is None
+    assert batch.PRELOAD_ENV not in os.environ
+
+
+def test_the_forkserver_preload_loads_the_head_and_never_raises(data, monkeypatch):
+    """What the forkserver runs when it imports groomtool.batch (in process here): the warm-up and the head,
+    into the cache the tasks read; the spec is taken out of the environment; a bad spec costs nothing."""
+    from groomtool.api import inversion_params
+
+    monkeypatch.setattr(batch, "_HEADS", {})
+    spec = {"head": str(data / "head.obj"), "units": "m", "params": None}
+    import base64
+    import pickle
+
+    spec["params"] = base64.b64encode(pickle.dumps(inversion_params(**PARAMS))).decode("ascii")
+    monkeypatch.setenv(batch.PRELOAD_ENV, json.dumps(spec))
+    batch._preload_in_forkserver()
+    assert batch.PRELOAD_ENV not in os.environ
+    (key,) = batch._HEADS
+    assert key[:2] == (str(data / "head.obj"), "m")
+    monkeypatch.setenv(batch.PRELOAD_ENV, "{not json")
+    batch._preload_in_forkserver()  # no exception: the workers would load what they need themselves
+    assert batch.PRELOAD_ENV not in os.environ
+
+
 def test_resume_skips_complete_output_sets_and_reruns_the_others(client, data, tmp_path):
     out = tmp_path / "out"
     first = batch.run_batch(inputs(data), out, head=data / "head.obj", params=PARAMS, client=client, quiet=True)

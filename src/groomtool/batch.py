@@ -63,11 +63,18 @@ LOCAL_CONFIG = {"distributed.worker.profile.enabled": False, "distributed.admin.
                 "distributed.admin.system-monitor.interval": "2s",
                 "distributed.worker.memory.monitor-interval": "500ms"}
 
+# what the forkserver of the local workers imports once for all of them (_forkserver_context)
+FORKSERVER_PRELOAD = ("distributed", "distributed.nanny", "distributed.worker", "groomtool.batch",
+                      "groomtool.invert", "groomtool.io", "groomtool.io.results")
+
+PRELOAD_ENV = "GROOMTOOL_BATCH_FORKSERVER"  # set only in the forkserver's environment: what to preload
+
 # the summary's columns, in order (CSV header; the JSON rows carry these plus ``timings_s``)
 COLUMNS = ("name", "input", "status", "strands", "elements", "contacts", "contacts_head", "contacts_strand",
            "solver", "solve_status", "solve_iterations", "residual", "q0_error_bound", "equilibrium_residual",
            "unstable_strands", "unstable_with_contacts", "q0_max", "q0_change_max", "fit_max_error_m",
-           "load_s", "invert_s", "write_s", "wall_s", "worker", "worker_peak_rss_mib", "output", "error", "warnings")
+           "load_s", "invert_s", "write_s", "wall_s", "worker", "worker_peak_rss_mib", "worker_cpu_s", "output", "error",
+           "warnings")
 
 
 @dataclass
@@ -83,6 +90,7 @@ class BatchSummary:
     exit_code: int = EXIT_OK
     csv_path: Path | None = None
     json_path: Path | None = None
+    client_cpu_s: float | None = None  # CPU of this process (with a local cluster: its scheduler and nannies)
 
     def failed(self) -> list[dict]:
         return [r for r in self.rows if r["status"] not in ("ok", "skipped")]
@@ -171,6 +179,16 @@ def _worker_name() -> str:
         return f"local:{os.getpid()}"
 
 
+def _cpu_s() -> float | None:
+    """CPU time (user + system) of this process so far."""
+    try:
+        import resource
+    except ImportError:  # pragma: no cover - Windows
+        return None
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    return r.ru_utime + r.ru_stime
+
+
 def _peak_rss_mib() -> float | None:
     try:
         import resource
@@ -257,6 +275,7 @@ def invert_one(path, outdir, head=None, params=None, load_options=None, formats=
     finally:
         row["wall_s"] = time.perf_counter() - t0
         row["worker_peak_rss_mib"] = _peak_rss_mib()
+        row["worker_cpu_s"] = _cpu_s()
         # warnings go to the summary, not to the terminal the progress bar is on
         row["warnings"] = "; ".join(dict.fromkeys(f"{w.category.__name__}: {w.message}" for w in caught)) or None
     return row
@@ -387,7 +406,8 @@ def write_summary(summary: BatchSummary) -> tuple[Path, Path]:
     csv_path = atomic_write(summary.outdir / f"{SUMMARY_NAME}.csv", buf.getvalue())
     json_path = summary.outdir / f"{SUMMARY_NAME}.json"
     write_json(json_path, {"outdir": str(summary.outdir), "workers": summary.workers, "wall_s": summary.wall_s,
-                           "counts": summary.counts, "exit_code": summary.exit_code, "grooms": summary.rows})
+                           "client_cpu_s": summary.client_cpu_s, "counts": summary.counts,
+                           "exit_code": summary.exit_code, "grooms": summary.rows})
     return csv_path, json_path
 
 
@@ -412,13 +432,88 @@ def _restore_environ(saved: dict) -> None:
             os.environ[key] = value
 
 
-def _local_cluster(workers: int, memory_limit, retries: int):
+def _forkserver_context(head=None, units="m", params=None):
+    """multiprocessing's forkserver for the local workers, started now (its preloading then runs while the
+    caller goes on), or None where the platform has none (Windows: spawned workers).
+
+    Spawned, every local worker process imported distributed and groomtool and loaded the numba kernels
+    and the head mesh itself, the last two inside its first task (~3 s of CPU per worker on a 2-core
+    machine, where the serial loop pays it once).  The forkserver does that once (``FORKSERVER_PRELOAD``,
+    then ``_preload_in_forkserver``: ``warmup.warm_up`` with the batch's parameters, which loads the
+    kernels such an inversion uses from numba's cache -- or compiles them once on a cold cache -- and the
+    head), and the workers fork from it with all of it loaded.  It is started with the workers' one-thread environment (``THREAD_ENV``:
+    numba and BLAS read it when imported) and lives as long as this process: later local clusters reuse
+    it (and the head it loaded, if theirs is the same; another head is loaded by each worker).
+    """
+    import multiprocessing
+
+    if "forkserver" not in multiprocessing.get_all_start_methods():  # pragma: no cover - Windows
+        return None
+    from multiprocessing import forkserver
+
+    ctx = multiprocessing.get_context("forkserver")
+    ctx.set_forkserver_preload(list(FORKSERVER_PRELOAD))
+    try:  # distributed would set its own preload list (importing every optional package here first)
+        import distributed.utils
+
+        distributed.utils._forkserver_preload_set = True
+    except (ImportError, AttributeError):  # pragma: no cover
+        pass
+    import base64
+    import pickle
+
+    preload = {"head": None if head is None else str(head), "units": units,
+               "params": None if params is None else base64.b64encode(pickle.dumps(params)).decode("ascii")}
+    spec = {PRELOAD_ENV: json.dumps(preload)}
+    saved = {k: os.environ.get(k) for k in (*THREAD_ENV, PRELOAD_ENV)}
+    os.environ.update({**THREAD_ENV, **spec})
+    try:
+        forkserver.ensure_running()
+    except OSError:  # pragma: no cover - cannot start it: spawn the workers
+        return None
+    finally:
+        _restore_environ(saved)
+    return ctx
+
+
+def _preload_in_forkserver() -> None:
+    """In the forkserver (``PRELOAD_ENV`` set, see ``_forkserver_context``): load the kernels and the head,
+    so that every worker forked from it starts with them.  Never raises (a failure costs time only: the
+    workers then load what they need themselves)."""
+    import base64
+    import pickle
+
+    from .warmup import warm_up
+
+    spec = os.environ.pop(PRELOAD_ENV, None)  # not passed on to the workers
+    if not spec:
+        return
+    try:
+        config = json.loads(spec)
+        params = pickle.loads(base64.b64decode(config["params"])) if config.get("params") else None
+        warm_up(params, with_head=config.get("head") is not None)
+        if config.get("head"):
+            _load_head_cached(config["head"], config["units"])
+    except Exception:  # pragma: no cover
+        pass
+
+
+def _local_cluster(workers: int, memory_limit, retries: int, start_method: str | None = "forkserver", head=None,
+                   units="m", params=None):
+    """A LocalCluster of ``workers`` one-thread processes (the batch's default).  ``start_method``
+    "forkserver" (default, where the platform has it): the worker processes fork from a server preloaded
+    with groomtool, its kernels and the ``head`` mesh (``_forkserver_context``); "spawn" or None:
+    distributed's default (fresh interpreters).  A worker restarted after its process died is spawned."""
     import logging
 
     import dask
     from distributed import LocalCluster
 
+    method = "spawn"
+    if start_method == "forkserver" and _forkserver_context(head, units, params) is not None:
+        method = "forkserver"
     with dask.config.set({"distributed.scheduler.allowed-failures": int(retries),
+                          "distributed.worker.multiprocessing-method": method,
                           "distributed.nanny.pre-spawn-environ": THREAD_ENV, **LOCAL_CONFIG}):
         return LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, memory_limit=memory_limit,
                             dashboard_address=":0", silence_logs=logging.ERROR, env=dict(THREAD_ENV))
@@ -472,10 +567,6 @@ def run_batch(inputs, outdir, head=None, params=None, *, units="m", scale: float
         raise GroomError(f"{outdir}: cannot create the output directory: {exc.strerror or exc}") from None
     for p in paths:  # before any computation: every groom's output set can be written there
         check_target(outdir / p.stem, inputs=(p, head))
-    if head is not None:  # a bad head fails the batch once, here, not every groom on the workers
-        from .io import load_head
-
-        load_head(head, units=unit_scale(units) * scale)
     if not (np.isfinite(scale) and scale > 0):
         raise GroomError(f"scale must be a positive number, got {scale:g}")
     load_options = {"units": unit_scale(units) * scale if scale != 1.0 else units, "up": up, "repair": repair,
@@ -488,6 +579,13 @@ def run_batch(inputs, outdir, head=None, params=None, *, units="m", scale: float
             rows[i] = skipped_row(p, outdir)
         else:
             todo.append(i)
+    if todo and client is None and scheduler is None:
+        # the local workers' forkserver loads groomtool, its kernels and the head while this process goes on
+        _forkserver_context(head, load_options["units"], params)
+    if head is not None:  # a bad head fails the batch once, here, not every groom on the workers
+        from .io import load_head
+
+        load_head(head, units=unit_scale(units) * scale)
 
     bar = tqdm(total=len(paths), desc="batch", unit="groom", disable=quiet, initial=len(paths) - len(todo))
     where = "none needed"
@@ -500,7 +598,7 @@ def run_batch(inputs, outdir, head=None, params=None, *, units="m", scale: float
         _tidy(outdir, [p.stem for p in paths])
     counts = {s: sum(r["status"] == s for r in rows) for s in STATUSES}
     summary = BatchSummary(rows=rows, outdir=outdir, wall_s=time.perf_counter() - t0, workers=where,
-                           counts=counts, exit_code=exit_code(rows))
+                           counts=counts, exit_code=exit_code(rows), client_cpu_s=_cpu_s())
     summary.csv_path, summary.json_path = write_summary(summary)
     return summary
 
@@ -521,7 +619,8 @@ def _run_tasks(paths, todo, rows, outdir, head, params, load_options, formats, w
                 # process's os.environ at every worker (re)start; put ours back when the cluster is gone, or the
                 # caller's next numba compilation fails ("Cannot set NUMBA_NUM_THREADS ... once launched")
                 stack.callback(_restore_environ, {k: os.environ.get(k) for k in THREAD_ENV})
-                cluster = stack.enter_context(_local_cluster(workers, memory_limit, retries))
+                cluster = stack.enter_context(_local_cluster(workers, memory_limit, retries, head=head,
+                                                             units=load_options["units"], params=params))
                 client = stack.enter_context(Client(cluster))
                 where = f"LocalCluster of {workers} worker processes, 1 thread each"
         else:
@@ -575,3 +674,7 @@ def print_summary(summary: BatchSummary, file=sys.stdout) -> None:
     print(f"groom batch: {len(summary.rows)} grooms in {summary.wall_s:.1f} s ({summary.workers}): {done}",
           file=file)
     print(f"  summary      {summary.csv_path}, {summary.json_path}", file=file)
+
+
+if os.environ.get(PRELOAD_ENV):  # imported by the local workers' forkserver (FORKSERVER_PRELOAD)
+    _preload_in_forkserver()
