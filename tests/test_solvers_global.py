@@ -209,6 +209,24 @@ def test_non_convergence_is_reported():
         assert res.residual == pytest.approx(P.residual(res.r), rel=1e-9)
 
 
+@pytest.mark.parametrize("method", ["gs", "apgd"])
+def test_stop_rule_ends_the_run_with_status_certified(method):
+    """The caller's stop(r, u) is asked at every residual check with r in the cones and u = W r + b; True ends the
+    run before the residual reaches tol (status "certified", not converged)."""
+    P = hair(300, seed=10)
+    seen = []
+
+    def stop(r, u):
+        seen.append(len(seen))
+        assert P.cone_violation(r) <= 1e-12 * np.abs(r).max()
+        np.testing.assert_allclose(u, P.velocity(r), rtol=1e-9, atol=1e-12 * np.abs(u).max())
+        return len(seen) == 3
+
+    res = solve_contact_problem(P, method=method, tol=1e-14, max_iter=10_000, stop=stop)
+    assert res.status == "certified" and not res.converged
+    assert len(seen) == 3 and res.iterations == 30
+
+
 def test_projected_sweeps_of_a_geometric_history():
     from groomtool.solvers.gauss_seidel import projected_sweeps
 

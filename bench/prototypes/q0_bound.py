@@ -31,6 +31,7 @@ from groomtool.solvers import solve_contact_problem  # noqa: E402
 from groomtool.solvers.certificate import error_bound, project_forces  # noqa: E402
 
 inv = importlib.import_module("groomtool.invert")
+ip = importlib.import_module("groomtool.inverse_problem")
 
 
 def build(n_strands, radius):
@@ -45,8 +46,8 @@ def build(n_strands, radius):
     H = contact_jacobian(helix, contacts, kin)
     F = sh.gravity_force(helix, mat.linear_density, g, kin)
     mu = np.full(len(contacts.strand_a), mat.friction)
-    P = inv.build_inverse_problem(helix, F, H, mat, g, params.guess, params.gamma, mu)
-    q0_free = helix.to_flat(inv.rest_curvature_guess(helix, params.guess)).ravel() + P.d  # q0 without contacts
+    P = ip.build_inverse_problem(helix, F, H, mat, g, params.guess, params.gamma, mu)
+    q0_free = P.q0_free  # q0 without contacts
     return P, P.contact_problem(helix), q0_free
 
 

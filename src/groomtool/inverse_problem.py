@@ -28,7 +28,7 @@ from numba import njit
 from .material import Material
 from .rods import clothoid as cl
 from .rods import superhelix as sh
-from .solver_choice import AUTO_CLARABEL_MAX_CONTACTS, GS_GIVE_UP, choose_solver
+from .solver_choice import AUTO_CLARABEL_MAX_CONTACTS, GS_GIVE_UP, choose_solver, dense_iterative_method
 from .timing import progress
 
 
@@ -340,7 +340,8 @@ def solve_inverse_problem(problem: InverseProblem, helix: sh.SuperHelix, params,
                           redundant_fraction: float = 1.0, initial_forces=None) -> dict:
     """Solve the scaled SOCQP with the chosen solver; forces returned in newtons (m, 3).  ``params``: the
     InversionParams (solver, solver_tolerance, max_sweeps, q0_tolerance).  The progress bar counts
-    Gauss-Seidel sweeps (clarabel's polish included) and shows the residual.  ``auto``: choose_solver; if
+    Gauss-Seidel sweeps (clarabel's polish included; ADMM iterations) and shows the residual.  ``auto``: choose_solver,
+    then on dense contacts beyond 10,000 the strand-split ADMM (solver_choice.dense_iterative_method); if
     its Gauss-Seidel does not converge on at most 10,000 contacts, clarabel takes over (report:
     fallback_from).  ``initial_forces`` (m, 3) in newtons, e.g. the previous stabilisation round's:
     Gauss-Seidel starts from them (clarabel ignores them)."""
@@ -350,6 +351,8 @@ def solve_inverse_problem(problem: InverseProblem, helix: sh.SuperHelix, params,
     cp = problem.contact_problem(helix)
     m = len(problem.mu)
     method = choose_solver(params.solver, m, redundant_fraction)
+    if params.solver == "auto" and method == "gs":  # dense contacts beyond clarabel's reach: the strand-split ADMM
+        method = dense_iterative_method(cp, redundant_fraction)
     bounded = problem.gamma > 0 and problem.q0_free is not None
 
     def run(method):
@@ -385,7 +388,9 @@ def solve_inverse_problem(problem: InverseProblem, helix: sh.SuperHelix, params,
                 return params.q0_tolerance is not None and shown["q0"] <= params.q0_tolerance
 
             # the sweep budget (and giving up on it early) is Gauss-Seidel's; clarabel keeps its own iteration limit
-            gs_only = {} if method == "clarabel" else {"max_iter": params.max_sweeps, "give_up": GS_GIVE_UP}
+            gs_only = {} if method == "clarabel" else {"max_iter": params.max_sweeps}
+            if method == "gs":
+                gs_only["give_up"] = GS_GIVE_UP
             if method != "clarabel" and initial_forces is not None:
                 gs_only["r0"] = np.asarray(initial_forces, dtype=np.float64).reshape(-1) / problem.f_scale
             if method != "clarabel" and bounded and (params.q0_tolerance is not None or not quiet):

@@ -7,11 +7,12 @@ Public API
     solve_coulomb(W, b, mu, method="gs", tol=1e-8, max_iter=None, r0=None, **options)
     solve_contact_problem(problem, law="soc" | "coulomb", method="auto", tol=1e-8, max_iter=None, r0=None,
                           form="auto" | "assembled" | "matrix_free", **options)
+    (method="admm" there: the strand-split ADMM of admm.py, for contact-dense problems)
     ContactProblem, SolveResult; the 3x3 local solver per block: local.normalize_block, local.solve_block
 
 Modules: cones (projections, natural map), local (3x3 solver), residual (convergence measures),
-problem (ContactProblem), blocks (3x3-block storage and assembly), gauss_seidel, anderson, apgd,
-clarabel_socqp, api.
+problem (ContactProblem), blocks (3x3-block storage and assembly), gauss_seidel, anderson, apgd, admm,
+clarabel_socqp, certificate, api.
 """
 
 from .api import SolveResult, choose_form, solve_contact_problem, solve_coulomb, solve_socqp

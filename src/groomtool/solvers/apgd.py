@@ -126,6 +126,7 @@ class APGDOutcome:
     restarts: int
     history: list = field(default_factory=list)
     solve_s: float = 0.0
+    stopped_by_rule: bool = False  # the caller's ``stop`` accepted r (before the residual reached tol)
 
 
 def run_apgd(
@@ -141,8 +142,12 @@ def run_apgd(
     scale: float | None = None,
     time_limit: float | None = None,
     callback=None,
+    stop=None,
 ) -> APGDOutcome:
-    """APGD (module docstring) on u = W r + b given x -> W x (matvec(x, out), x/out (m, 3))."""
+    """APGD (module docstring) on u = W r + b given x -> W x (matvec(x, out), x/out (m, 3)).
+    callback(iterations, residual) at every residual check; stop(r, u) -> bool, asked at every check with the
+    current x (in the cones) and u = W x + b (both (3m,)): True ends the run (outcome.stopped_by_rule), as in
+    gauss_seidel.run_gauss_seidel."""
     t0 = time.perf_counter()
     m = b.size // 3
     b = np.ascontiguousarray(np.asarray(b, dtype=np.float64).reshape(m, 3))
@@ -168,6 +173,7 @@ def run_apgd(
     res = emax / scale
     history = [(0, res, time.perf_counter() - t0)]
     k = 0
+    by_rule = False
     while res > tol and k < max_iter:
         _gradient_step(y, wy, b, rho, mu, t, x_new)
         matvec(x_new, wx_new)
@@ -187,8 +193,12 @@ def run_apgd(
             history.append((k, res, time.perf_counter() - t0))
             if callback is not None:
                 callback(k, res)
+            if res > tol and stop is not None and stop(x.reshape(-1).copy(), (wx + b).reshape(-1)):
+                by_rule = True
+                break
             if time_limit is not None and time.perf_counter() - t0 > time_limit:
                 break
             if not math.isfinite(res):
                 break
-    return APGDOutcome(x.reshape(-1).copy(), float(res), k, bool(res <= tol), restarts, history, time.perf_counter() - t0)
+    return APGDOutcome(x.reshape(-1).copy(), float(res), k, bool(res <= tol), restarts, history, time.perf_counter() - t0,
+                       by_rule)

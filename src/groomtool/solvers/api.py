@@ -15,6 +15,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from . import residual as _res
+from .admm import run_admm
 from .apgd import FactoredMatvec, UpperMatvec, run_apgd
 from .blocks import UpperBlockDelassus, contact_segments
 from .clarabel_socqp import solve_assembled, solve_factored
@@ -23,8 +24,8 @@ from .cones import law_code
 from .gauss_seidel import AssembledOperator, MatrixFreeOperator, contact_order, run_gauss_seidel
 from .problem import ContactProblem
 
-DEFAULT_MAX_ITER = {"gs": 5000, "fixed_point": 5000, "apgd": 20000, "clarabel": 200}
-SOC_METHODS = ("gs", "apgd", "clarabel")
+DEFAULT_MAX_ITER = {"gs": 5000, "fixed_point": 5000, "apgd": 20000, "clarabel": 200, "admm": 5000}
+SOC_METHODS = ("gs", "apgd", "clarabel", "admm")
 COULOMB_METHODS = ("gs", "fixed_point")
 COULOMB_STALL_WINDOW = 200  # sweeps without halving the residual before "auto" switches to fixed_point
 ASSEMBLED_MEMORY_CAP = 4 << 30  # bytes of 3x3 blocks above which "auto" goes matrix-free
@@ -239,8 +240,8 @@ def solve_socqp(W, b, mu, method: str = "gs", tol: float = 1e-8, max_iter: int |
     gauss_seidel.projected_sweeps), callback(sweeps, residual) at every residual check (also during
     clarabel's polish), stop(r, u) -> bool (the caller's own rule, asked at every check: True ends the run,
     status "certified"; e.g. certificate.error_bound below a tolerance);
-    apgd: check_every, time_limit; clarabel: threads, linear_solver, time_limit, polish=True (False: return
-    clarabel's own point, converged when clarabel reports Solved, whatever its residual)."""
+    apgd: check_every, time_limit, callback, stop; clarabel: threads, linear_solver, time_limit, polish=True (False:
+    return clarabel's own point, converged when clarabel reports Solved, whatever its residual)."""
     return _solve_assembled(W, b, mu, "soc", method, tol, max_iter, r0, dict(options))
 
 
@@ -359,10 +360,13 @@ def solve_contact_problem(
     """Solve u = (H D H^T + 2 gamma I) r + b under ``law`` ("soc": the SOCQP of the inversion;
     "coulomb": the forward simulator's friction) for a ContactProblem.
 
-    method: SOC: "gs" | "apgd" | "clarabel" | "auto" (= "gs"); Coulomb: "gs" | "fixed_point" | "auto"
+    method: SOC: "gs" | "apgd" | "clarabel" | "admm" | "auto" (= "gs"); Coulomb: "gs" | "fixed_point" | "auto"
     (see solve_coulomb).  form (gs, apgd, fixed_point): "assembled" (W in 3x3 blocks,
     assembled strand by strand), "matrix_free" (v = D H^T r kept per strand) or "auto" (choose_form).
-    clarabel uses the sparse factored SOCQP (clarabel_socqp.py).  Other options as in solve_socqp."""
+    clarabel uses the sparse factored SOCQP (clarabel_socqp.py).  "admm" (SOC law, ContactProblem only):
+    strand-split ADMM with one Cholesky factor per strand (admm.py; options beta, alpha, anderson, warm_sweeps,
+    check_every, time_limit, scale, callback, stop), for contact-dense problems where Gauss-Seidel stalls
+    (docs/solvers.md section 12).  Other options as in solve_socqp."""
     t0 = time.perf_counter()
     code = law_code(law)
     law = "soc" if code == 0 else "coulomb"
@@ -394,19 +398,32 @@ def _solve(target, law: str, method: str, tol: float, max_iter, r0, options: dic
                 r, conv, status = _polish_with_gs(target.polish_operator(), r, residual, tol, info, status,
                                                   callback, scale)
     else:
-        order = options.pop("order", None)  # Gauss-Seidel's sweep order; APGD has none
-        if method == "apgd":
+        order = options.pop("order", None)  # Gauss-Seidel's sweep order; APGD and ADMM have none
+        if method == "admm":
+            if not isinstance(target, _FactoredTarget):
+                raise ValueError("method 'admm' splits W = H D H^T + 2 gamma I by strand: it needs a ContactProblem "
+                                 "(solve_contact_problem), not an assembled W")
+            out = run_admm(target.problem, tol=tol, max_iter=max_iter, r0=r0, **options)
+            setup_s = out.setup_s
+            info.update(solve_s=out.solve_s, history=out.history, anderson_restarts=out.anderson_restarts,
+                        warm_sweeps=out.warm_sweeps)
+            if out.stopped_by_rule:  # the caller's stop rule accepted r (status "certified")
+                info["stopped_by"] = "stop"
+            r, iters, conv, res_solver = out.r, out.iterations, out.converged, out.residual
+        elif method == "apgd":
             mv, rho, b = target.apgd_operator()
             setup_s = time.perf_counter() - t0
             out = run_apgd(mv, b, target.mu, rho, tol=tol, max_iter=max_iter, r0=r0, **options)
             info.update(restarts=out.restarts, solve_s=out.solve_s, history=out.history)
+            if out.stopped_by_rule:  # the caller's stop rule accepted r (status "certified")
+                info["stopped_by"] = "stop"
             r, iters, conv, res_solver = out.r, out.iterations, out.converged, out.residual
         else:
             op = target.gs_operator(order)
             setup_s = time.perf_counter() - t0
             r, iters, conv, res_solver = _run_gs_family(op, law, method, tol, max_iter, r0, options, info)
         status = _iterative_status(conv, res_solver, iters, max_iter, info)
-        info.update(form=target.form, setup_s=setup_s)
+        info.update(form="strand_split" if method == "admm" else target.form, setup_s=setup_s)
     u = target.velocity(r)
     residual = target.residual(r, u, law, scale)
     return SolveResult(

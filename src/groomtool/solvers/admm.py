@@ -1,0 +1,423 @@
+"""Strand-split (consensus) ADMM for the SOCQP of a ContactProblem (issue 16; docs/solvers.md section 12).
+
+    min_r 1/2 r^T W r + b^T r,  r_i in K_mu_i,   W = H D H^T + 2 gamma I
+
+Contact i acts on the strands its rows touch (two for a strand/strand contact, one against the head): its
+Jacobian H_i = sum_e J_e over its *ends* e, J_e holding strand s(e)'s columns only.  Then
+1/2 |D^1/2 H^T r|^2 = sum_s 1/2 |D_s^1/2 sum_{e on s} J_e^T r_i(e)|^2 splits by strand, and ADMM on the copies
+x_e = s_i(e) of each contact's force (Boyd et al. 2011, consensus form, over-relaxed) alternates
+
+    s-step (per contact):  s_i = P_K( (rho_i sum_e z_e - b_i) / (2 gamma + n_i rho_i) ),   n_i: ends of contact i
+    x-step (per strand):   (J_s D_s J_s^T + rho) x_s = rho w_s,  w_e = 2 s_i(e) - z_e,  by Woodbury
+                           x_s = w_s - J_s M_s^-1 J_s^T w_s / rho,   M_s = D_s^-1 + J_s^T J_s / rho  (n_s x n_s,
+                           Cholesky factored ONCE: rho is fixed)
+    update:                z_e += alpha (x_e - s_i(e))        (over-relaxed; z = x^ + lam, the scaled multiplier)
+
+(the Douglas-Rachford form of the consensus ADMM: x^ = alpha x + (1 - alpha) s, lam += x^ - s),
+with rho_i = beta tr(W_ii) / 3 per contact, and Anderson mixing (anderson.py) of the state z (3 per end).  Each
+strand's exact solve sees all of its contacts at once: the directions that Gauss-Seidel corrects one contact at
+a time by ~2 gamma / W_ii per sweep (redundant contacts, docs/solvers.md section 9) are solved in one step, and
+what is left is the consensus between the two strands of each contact.  One iteration costs about two
+products with H (per end: its panel of packed H) and one triangular solve pair per strand: ~ a Gauss-Seidel sweep.
+
+s is always in the cones (an exact equilibrium in the inversion), so the caller's ``stop`` rule (certificate.py's
+bound) can certify it at any check.  Measured on example_groom(1000) with all contacts (67,805): the certified
+rest-curvature bound 1e-3 where Gauss-Seidel stalls (docs/solvers.md section 12).  SOC law only.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from numba import njit
+
+from . import residual as _res
+from .anderson import AndersonMixer
+from .anderson import norm as _norm
+from .cones import SOC, project_cone
+
+_FM = {"contract", "arcp", "nsz"}
+
+BETA = 0.03  #: rho_i = BETA tr(W_ii) / 3 (example_groom(300) with all contacts: 0.01 slower, 0.1 / 0.3 slower)
+ALPHA = 1.6  #: over-relaxation
+ANDERSON = 8  #: memory of the Anderson mixing of (x^, lam); 0 = plain ADMM
+WARM_SWEEPS = 20  #: Gauss-Seidel sweeps before the first ADMM iteration (cold starts only)
+
+
+# ----------------------------------------------------------------------------------------------
+# set-up: ends and the strand systems
+# ----------------------------------------------------------------------------------------------
+@njit(cache=True)
+def _count_ends(ptr, cols, dof_offsets):
+    """Ends per contact: the distinct strands among its (sorted) panel columns."""
+    m = ptr.shape[0] - 1
+    out = np.zeros(m, dtype=np.int64)
+    for i in range(m):
+        last = -1
+        for p in range(ptr[i], ptr[i + 1]):
+            s = np.searchsorted(dof_offsets, cols[p], side="right") - 1
+            if s != last:
+                out[i] += 1
+                last = s
+    return out
+
+
+@njit(cache=True)
+def _fill_ends(ptr, cols, dof_offsets, cend_ptr, end_contact, end_strand, end_p0, end_p1):
+    """Per end (contact-major here): its contact, strand and panel range [p0, p1) of packed H."""
+    m = ptr.shape[0] - 1
+    for i in range(m):
+        k = cend_ptr[i] - 1
+        last = -1
+        for p in range(ptr[i], ptr[i + 1]):
+            s = np.searchsorted(dof_offsets, cols[p], side="right") - 1
+            if s != last:
+                k += 1
+                end_contact[k] = i
+                end_strand[k] = s
+                end_p0[k] = p
+                last = s
+            end_p1[k] = p + 1
+
+
+@njit(cache=True, fastmath=_FM)
+def _accumulate_M(strand_ptr, ends_sorted, end_p0, end_p1, cols, vals, rho_end, dof_offsets, M_ptr, M):
+    """M_s += sum_{e on s} J_e^T J_e / rho_e (dense n_s x n_s, row-major at M[M_ptr[s]:])."""
+    S = strand_ptr.shape[0] - 1
+    for s in range(S):
+        o = dof_offsets[s]
+        n = dof_offsets[s + 1] - o
+        base = M_ptr[s]
+        for q in range(strand_ptr[s], strand_ptr[s + 1]):
+            e = ends_sorted[q]
+            w = 1.0 / rho_end[e]
+            for p in range(end_p0[e], end_p1[e]):
+                a = cols[p] - o
+                va0 = vals[p, 0] * w
+                va1 = vals[p, 1] * w
+                va2 = vals[p, 2] * w
+                for p2 in range(end_p0[e], end_p1[e]):
+                    c = cols[p2] - o
+                    M[base + a * n + c] += va0 * vals[p2, 0] + va1 * vals[p2, 1] + va2 * vals[p2, 2]
+
+
+@njit(cache=True, fastmath=_FM)
+def _x_step(strand_ptr, ends_sorted, end_p0, end_p1, cols, vals, rho_end, dof_offsets, L_ptr, L, w, x, t):
+    """x_e = w_e - J_e M_s^-1 (sum_{e' on s} J_e'^T w_e') / rho_e for every strand s (M_s = L L^T, L lower,
+    row-major); t: scratch of the largest n_s."""
+    S = strand_ptr.shape[0] - 1
+    for s in range(S):
+        q0 = strand_ptr[s]
+        q1 = strand_ptr[s + 1]
+        if q0 == q1:
+            continue
+        o = dof_offsets[s]
+        n = dof_offsets[s + 1] - o
+        for k in range(n):
+            t[k] = 0.0
+        for q in range(q0, q1):
+            e = ends_sorted[q]
+            w0 = w[e, 0]
+            w1 = w[e, 1]
+            w2 = w[e, 2]
+            for p in range(end_p0[e], end_p1[e]):
+                t[cols[p] - o] += vals[p, 0] * w0 + vals[p, 1] * w1 + vals[p, 2] * w2
+        base = L_ptr[s]
+        for k in range(n):  # L y = t
+            acc = t[k]
+            row = base + k * n
+            for j in range(k):
+                acc -= L[row + j] * t[j]
+            t[k] = acc / L[row + k]
+        for k in range(n - 1, -1, -1):  # L^T z = y
+            acc = t[k]
+            for j in range(k + 1, n):
+                acc -= L[base + j * n + k] * t[j]
+            t[k] = acc / L[base + k * n + k]
+        for q in range(q0, q1):
+            e = ends_sorted[q]
+            a0 = 0.0
+            a1 = 0.0
+            a2 = 0.0
+            for p in range(end_p0[e], end_p1[e]):
+                z = t[cols[p] - o]
+                a0 += vals[p, 0] * z
+                a1 += vals[p, 1] * z
+                a2 += vals[p, 2] * z
+            inv = 1.0 / rho_end[e]
+            x[e, 0] = w[e, 0] - a0 * inv
+            x[e, 1] = w[e, 1] - a1 * inv
+            x[e, 2] = w[e, 2] - a2 * inv
+
+
+@njit(cache=True, fastmath=_FM)
+def _s_step(cend_ptr, z, b, mu, gamma2, rho_c, s, w):
+    """s_i = P_K((rho_i sum_e z_e - b_i) / (2 gamma + n_i rho_i)) and w_e = 2 s_i(e) - z_e (z = x^ + lam)."""
+    m = b.shape[0]
+    for i in range(m):
+        r = rho_c[i]
+        a0 = 0.0
+        a1 = 0.0
+        a2 = 0.0
+        for e in range(cend_ptr[i], cend_ptr[i + 1]):
+            a0 += z[e, 0]
+            a1 += z[e, 1]
+            a2 += z[e, 2]
+        d = 1.0 / (gamma2 + (cend_ptr[i + 1] - cend_ptr[i]) * r)
+        p0, p1, p2 = project_cone(mu[i], (r * a0 - b[i, 0]) * d, (r * a1 - b[i, 1]) * d, (r * a2 - b[i, 2]) * d)
+        s[i, 0] = p0
+        s[i, 1] = p1
+        s[i, 2] = p2
+        for e in range(cend_ptr[i], cend_ptr[i + 1]):
+            w[e, 0] = 2.0 * p0 - z[e, 0]
+            w[e, 1] = 2.0 * p1 - z[e, 1]
+            w[e, 2] = 2.0 * p2 - z[e, 2]
+
+
+@njit(cache=True, fastmath=_FM)
+def _dr_update(cend_ptr, z, x, s, alpha, out):
+    """out_e = z_e + alpha (x_e - s_i(e))  (= x^_e + lam_e after the dual update)."""
+    for i in range(cend_ptr.shape[0] - 1):
+        for e in range(cend_ptr[i], cend_ptr[i + 1]):
+            for a in range(3):
+                out[e, a] = z[e, a] + alpha * (x[e, a] - s[i, a])
+
+
+@njit(cache=True, fastmath=_FM)
+def _strand_velocity(strand_ptr, ends_sorted, end_p0, end_p1, cols, vals, dof_offsets, D_data, D_ptr, D_is_diag,
+                     x, out, t, t2):
+    """out_e = J_e D_s sum_{e' on s} J_e'^T x_e'  (strand s's part of contact i(e)'s velocity)."""
+    S = strand_ptr.shape[0] - 1
+    for s in range(S):
+        q0 = strand_ptr[s]
+        q1 = strand_ptr[s + 1]
+        if q0 == q1:
+            continue
+        o = dof_offsets[s]
+        n = dof_offsets[s + 1] - o
+        for k in range(n):
+            t[k] = 0.0
+        for q in range(q0, q1):
+            e = ends_sorted[q]
+            for p in range(end_p0[e], end_p1[e]):
+                t[cols[p] - o] += vals[p, 0] * x[e, 0] + vals[p, 1] * x[e, 1] + vals[p, 2] * x[e, 2]
+        d0 = D_ptr[s]
+        if D_is_diag[s]:
+            for k in range(n):
+                t2[k] = D_data[d0 + k] * t[k]
+        else:
+            for k in range(n):
+                acc = 0.0
+                for j in range(n):
+                    acc += D_data[d0 + k * n + j] * t[j]
+                t2[k] = acc
+        for q in range(q0, q1):
+            e = ends_sorted[q]
+            a0 = 0.0
+            a1 = 0.0
+            a2 = 0.0
+            for p in range(end_p0[e], end_p1[e]):
+                z = t2[cols[p] - o]
+                a0 += vals[p, 0] * z
+                a1 += vals[p, 1] * z
+                a2 += vals[p, 2] * z
+            out[e, 0] = a0
+            out[e, 1] = a1
+            out[e, 2] = a2
+
+
+class StrandSplit:
+    """The ends of a ContactProblem's contacts and the Cholesky factors of M_s = D_s^-1 + J_s^T J_s / rho, for a
+    per-contact rho (fixed for the whole run)."""
+
+    def __init__(self, problem, rho_c: np.ndarray):
+        H = problem.packed_H()
+        self.problem = problem
+        off = np.ascontiguousarray(problem.dof_offsets, dtype=np.int64)
+        m = problem.n_contacts
+        per = _count_ends(H.ptr, H.cols, off)
+        cend_ptr = np.zeros(m + 1, dtype=np.int64)
+        np.cumsum(per, out=cend_ptr[1:])
+        E = int(cend_ptr[-1])
+        end_contact = np.empty(E, dtype=np.int64)
+        end_strand = np.empty(E, dtype=np.int64)
+        end_p0 = np.empty(E, dtype=np.int64)
+        end_p1 = np.empty(E, dtype=np.int64)
+        _fill_ends(H.ptr, H.cols, off, cend_ptr, end_contact, end_strand, end_p0, end_p1)
+        S = problem.n_strands
+        self.ends_sorted = np.argsort(end_strand, kind="stable").astype(np.int64)
+        self.strand_ptr = np.zeros(S + 1, dtype=np.int64)
+        np.cumsum(np.bincount(end_strand, minlength=S), out=self.strand_ptr[1:])
+        self.cend_ptr, self.end_contact, self.end_p0, self.end_p1 = cend_ptr, end_contact, end_p0, end_p1
+        self.H, self.off = H, off
+        self.rho_c = np.ascontiguousarray(rho_c, dtype=np.float64)
+        self.rho_end = np.ascontiguousarray(self.rho_c[end_contact])
+        sizes = np.diff(off)
+        used = np.diff(self.strand_ptr) > 0
+        self.L_ptr = np.zeros(S + 1, dtype=np.int64)
+        np.cumsum(np.where(used, sizes * sizes, 0), out=self.L_ptr[1:])
+        M = np.zeros(int(self.L_ptr[-1]))
+        _accumulate_M(self.strand_ptr, self.ends_sorted, end_p0, end_p1, H.cols, H.vals, self.rho_end, off,
+                      self.L_ptr, M)
+        for s in np.flatnonzero(used):  # + D_s^-1, then Cholesky in place
+            n = int(sizes[s])
+            blk = M[self.L_ptr[s]:self.L_ptr[s + 1]].reshape(n, n)
+            d = problem.D_blocks[s]
+            if d.ndim == 1:
+                blk[np.diag_indices(n)] += 1.0 / d
+            else:
+                blk += np.linalg.inv(d)
+            blk[:] = np.linalg.cholesky(0.5 * (blk + blk.T))
+        self.L = M
+        self.t = np.zeros(int(sizes.max()) if S else 0)
+        self.t2 = np.zeros_like(self.t)
+        self.n_ends = E
+
+    @property
+    def nbytes(self) -> int:
+        return self.L.nbytes + 8 * 6 * self.n_ends
+
+    def x_step(self, w, x):
+        H = self.H
+        _x_step(self.strand_ptr, self.ends_sorted, self.end_p0, self.end_p1, H.cols, H.vals, self.rho_end, self.off,
+                self.L_ptr, self.L, w, x, self.t)
+
+    def strand_velocity(self, x):
+        p, H = self.problem, self.H
+        out = np.empty_like(x)
+        _strand_velocity(self.strand_ptr, self.ends_sorted, self.end_p0, self.end_p1, H.cols, H.vals, self.off,
+                         p.D_data, p.D_ptr, p.D_is_diag, x, out, self.t, self.t2)
+        return out
+
+
+def strand_split_bytes(problem, anderson: int = ANDERSON) -> int:
+    """Memory of run_admm on ``problem`` beyond the problem itself, estimated from H's columns alone: a dense
+    n_s x n_s factor per strand that carries a contact, and per contact end (at most the strands a contact's
+    columns touch, bounded by 2 per contact for strand/strand contacts) its indices, three state vectors and
+    the Anderson history (float32)."""
+    H = problem.H
+    strand = np.searchsorted(problem.dof_offsets, H.indices, side="right") - 1 if H.nnz else np.zeros(0, np.int64)
+    used = np.bincount(strand, minlength=problem.n_strands) > 0
+    sizes = np.diff(problem.dof_offsets)
+    ends = 2 * problem.n_contacts
+    return int(8 * np.sum(sizes[used].astype(np.int64) ** 2) + ends * (4 * 8 + 5 * 3 * 8 + 2 * anderson * 3 * 4))
+
+
+@dataclass
+class ADMMOutcome:
+    r: np.ndarray  # (3m,) the last s (in the cones)
+    residual: float
+    iterations: int
+    converged: bool
+    history: list = field(default_factory=list)  # [(iteration, residual, seconds)]
+    solve_s: float = 0.0
+    setup_s: float = 0.0
+    stopped_by_rule: bool = False
+    anderson_restarts: int = 0
+    warm_sweeps: int = 0
+
+
+def run_admm(
+    problem,
+    *,
+    tol: float = 1e-8,
+    max_iter: int = 5000,
+    r0: np.ndarray | None = None,
+    beta: float = BETA,
+    alpha: float = ALPHA,
+    anderson: int = ANDERSON,
+    warm_sweeps: int = WARM_SWEEPS,
+    check_every: int = 10,
+    scale: float | None = None,
+    time_limit: float | None = None,
+    callback=None,
+    stop=None,
+) -> ADMMOutcome:
+    """Strand-split ADMM (module docstring) on a ContactProblem, SOC law.  Starts from r0 (projected onto the
+    cones) or, without one, from ``warm_sweeps`` Gauss-Seidel sweeps.  Every ``check_every`` iterations: the
+    residual of residual.py on s (stop at tol), callback(iterations, residual), stop(r, u) -> bool (the caller's
+    rule, e.g. the certified rest-curvature bound: True ends the run, outcome.stopped_by_rule), time_limit."""
+    from .certificate import project_forces
+
+    if not 0.0 < alpha < 2.0:
+        raise ValueError("alpha must be in (0, 2)")
+    if not beta > 0.0:
+        raise ValueError("beta must be > 0")
+    t0 = time.perf_counter()
+    m = problem.n_contacts
+    diag = problem.diagonal_blocks()
+    rho_c = beta * np.einsum("kii->k", diag) / 3.0
+    rho_c = np.where(rho_c > 0, rho_c, 1.0)
+    split = StrandSplit(problem, rho_c)
+    b = np.ascontiguousarray(problem.b.reshape(m, 3))
+    mu = problem.mu
+    rho = problem.rho()
+    if scale is None:
+        scale = _res.residual_scale(problem.b, rho)
+    warm = 0
+    if r0 is None and warm_sweeps > 0:
+        from .gauss_seidel import MatrixFreeOperator, run_gauss_seidel
+
+        out = run_gauss_seidel(MatrixFreeOperator(problem), "soc", tol=tol, max_sweeps=warm_sweeps, scale=scale)
+        r0, warm = out.r, out.sweeps
+    s = np.zeros((m, 3)) if r0 is None else project_forces(r0, mu)[0].reshape(m, 3)
+    E = split.n_ends
+    # the ADMM fixed point's multipliers for s: lam_e = -(strand s(e)'s part of u_i) / rho_i, z = x^ + lam
+    xh = np.ascontiguousarray(s[split.end_contact])
+    z = xh - split.strand_velocity(xh) / split.rho_end[:, None]
+    setup_s = time.perf_counter() - t0
+
+    def measure(r):
+        u = problem.velocity(r.reshape(-1))
+        emax, _ = _res.residual_max_rms(SOC, r, u.reshape(m, 3), mu, rho)
+        return emax / scale, u
+
+    res, u = measure(s)
+    history = [(0, res, time.perf_counter() - t0)]
+    nxt = np.empty_like(z)
+    f = np.empty(3 * E)
+    mixer = AndersonMixer(3 * E, anderson) if anderson > 0 else None
+    w = np.empty((E, 3))
+    x = np.empty((E, 3))
+    gamma2 = 2.0 * problem.gamma
+    best = math.inf
+    restarts = 0
+    k = 0
+    by_rule = False
+    while res > tol and k < max_iter:
+        _s_step(split.cend_ptr, z, b, mu, gamma2, rho_c, s, w)
+        split.x_step(w, x)
+        _dr_update(split.cend_ptr, z, x, s, alpha, nxt)
+        k += 1
+        if mixer is None:
+            z, nxt = nxt, z
+        else:
+            zf = z.reshape(-1)
+            np.subtract(nxt.reshape(-1), zf, out=f)
+            fn = _norm(f)
+            if fn > 10.0 * best:
+                mixer.reset()
+                restarts += 1
+                best = fn
+            best = min(best, fn)
+            mixer.step(zf, f, zf)
+        if k % check_every == 0 or k >= max_iter:
+            res, u = measure(s)
+            history.append((k, res, time.perf_counter() - t0))
+            if callback is not None:
+                callback(k, res)
+            if res <= tol or not math.isfinite(res):
+                break
+            if stop is not None and stop(s.reshape(-1).copy(), u):
+                by_rule = True
+                break
+            if time_limit is not None and time.perf_counter() - t0 > time_limit:
+                break
+    if history[-1][0] != k:
+        res, u = measure(s)
+        history.append((k, res, time.perf_counter() - t0))
+    return ADMMOutcome(s.reshape(-1).copy(), float(res), k, bool(res <= tol), history, time.perf_counter() - t0,
+                       setup_s, by_rule, restarts, warm)
