@@ -240,6 +240,24 @@ def test_a_writer_that_fails_leaves_no_partial_output(data, tmp_path, monkeypatc
     assert list(out.iterdir()) == []
 
 
+def test_the_progress_bar_is_the_packages_one_form_starting_at_the_skipped_grooms(capsys):
+    from groomtool import timing
+
+    bar = batch._progress_bar(10, 4, quiet=False)
+    try:
+        assert isinstance(bar, timing._bar_class())  # timing.progress: one form of bar (issue 18)
+        assert bar.n == 4 and not bar.leave
+        bar.update(3)  # the first task done: the time left is measured from here, not from the start-up
+        assert bar.format_dict["bar_format"] == timing._UNMEASURED
+    finally:
+        bar.close()
+    assert "batch:" in capsys.readouterr().err
+    quiet = batch._progress_bar(10, 4, quiet=True)
+    assert quiet.disable
+    quiet.close()
+    assert capsys.readouterr().err == ""
+
+
 def test_exit_codes_and_bad_batches(data, tmp_path):
     rows = [{"status": s} for s in ("ok", "skipped")]
     assert batch.exit_code(rows) == 0
@@ -360,6 +378,33 @@ def test_plan_tasks_covers_every_groom_once_largest_first_with_small_tasks_last(
     assert all(a >= b - 1e-12 for a, b in zip(totals, totals[1:])) or max(totals) == min(totals)
     if len(costs) >= 100 and len(set(costs)) == 1:  # many equal small grooms: far fewer tasks than grooms
         assert len(groups) < len(costs) / 5
+
+
+def test_estimated_costs_grow_with_strands_and_vertices_and_fall_back_to_the_file_size(tmp_path):
+    """estimate_cost (plan_tasks' costs): monotone in strands x vertices read from synthetic headers, the same
+    for the same groom in any format (file sizes differ 4x between .obj and .data), the size where no header."""
+    import struct
+
+    costs = []
+    for strands, per in [(5, 100), (10, 100), (10, 200), (40, 100), (40, 400), (200, 100)]:
+        p = tmp_path / f"s{strands}_{per}.data"
+        with open(p, "wb") as f:  # only the count is real: the header is all estimate_cost reads
+            f.write(struct.pack("<i", strands))
+            f.write(b"\x00" * (4 * strands + 12 * strands * per))
+        costs.append((strands * per * strands, batch.estimate_cost(p)))
+    assert [c for _, c in sorted(costs)] == sorted(c for _, c in costs)  # monotone in strands x vertices
+    assert all(c > batch.COST_FIXED_S for _, c in costs)
+    groom, _ = example_groom(n_strands=6, seed=0)
+    same = []
+    for suffix in (".obj", ".data", ".hair"):
+        save_groom(groom, tmp_path / f"g{suffix}")
+        same.append(batch.estimate_cost(tmp_path / f"g{suffix}"))
+    assert same[0] == same[1] == same[2]
+    assert (tmp_path / "g.obj").stat().st_size > 3 * (tmp_path / "g.data").stat().st_size
+    (tmp_path / "big.usd").write_bytes(b"\x00" * 240000)
+    (tmp_path / "small.usd").write_bytes(b"\x00" * 24000)
+    assert batch.estimate_cost(tmp_path / "big.usd") > batch.estimate_cost(tmp_path / "small.usd")
+    assert batch.estimate_cost(tmp_path / "missing.data") == batch.COST_FIXED_S
 
 
 def test_a_task_group_whose_worker_dies_is_rerun_groom_by_groom(client, data, tmp_path, monkeypatch):

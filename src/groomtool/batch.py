@@ -286,8 +286,38 @@ def invert_many(paths, outdir, head=None, params=None, load_options=None, format
     return [invert_one(p, outdir, head, params, load_options, formats) for p in paths]
 
 
+# estimated seconds of one groom's task (estimate_cost): COST_FIXED_S + COST_PER_STRAND_VERTEX_S x strands x
+# vertices, fitted on 11 bundled-example grooms of 20-120 strands (1.7-10.3 k vertices; --contacts all;
+# 0.36-2.97 s each, predicted within 0.25 s; bench/results/batch.cost_model.md); the fixed part is reading,
+# writing and the per-groom set-up, the product the contact detection and solve that grow with both
+COST_FIXED_S = 0.33
+COST_PER_STRAND_VERTEX_S = 2.1e-6
+VERTICES_PER_STRAND = 100  # where a format does not say how many strands (bare OBJ vertices, PLY)
+BYTES_PER_VERTEX = {".obj": 48, ".data": 12, ".hair": 12}  # where the header cannot be read: 24 for others
+
+
+def estimate_cost(path) -> float:
+    """Estimated seconds of a groom's task, for ``plan_tasks``: from its strand and vertex counts read from
+    the header (``io.peek.peek_counts``: a few bytes, or a byte scan of an OBJ), else from its file size.
+    Relative costs are what matter; a missing or unreadable file gets the fixed part only."""
+    from .io.peek import peek_counts
+
+    path = Path(path)
+    counts = peek_counts(path)
+    if counts is None:
+        try:
+            size = path.stat().st_size
+        except OSError:
+            return COST_FIXED_S
+        counts = (None, size // BYTES_PER_VERTEX.get(path.suffix.lower(), 24))
+    strands, vertices = counts
+    if strands is None:
+        strands = max(1, vertices // VERTICES_PER_STRAND)
+    return COST_FIXED_S + COST_PER_STRAND_VERTEX_S * float(strands) * float(vertices)
+
+
 def plan_tasks(costs, workers: int, tail: int = 2) -> list[list[int]]:
-    """Group grooms into tasks: guided self-scheduling on estimated costs (file sizes).
+    """Group grooms into tasks: guided self-scheduling on estimated costs (``estimate_cost``).
 
     Largest first; each task takes grooms, in that order, until its cost reaches remaining / (tail *
     workers) (at least one groom).  The first tasks are large, the last ones single small grooms, so the
@@ -519,6 +549,19 @@ def _local_cluster(workers: int, memory_limit, retries: int, start_method: str |
                             dashboard_address=":0", silence_logs=logging.ERROR, env=dict(THREAD_ENV))
 
 
+def _progress_bar(total: int, skipped: int, quiet: bool):
+    """The batch's bar, in the package's one form (``timing.progress``: its time left measured on the grooms
+    after the first completed task, so the cluster's start-up does not inflate it), starting at the
+    ``skipped`` grooms (resume) as tqdm's ``initial`` would (``timing.progress`` takes none)."""
+    from .timing import progress
+
+    bar = progress(total, "batch", quiet, unit="groom")
+    if skipped and not bar.disable:
+        bar.n = bar.initial = bar.last_print_n = skipped
+        bar.refresh()
+    return bar
+
+
 def run_batch(inputs, outdir, head=None, params=None, *, units="m", scale: float = 1.0, up="y", repair=False,
               strand_length=None,
               formats=DEFAULT_FORMATS, workers: int = 2, scheduler: str | None = None, client=None,
@@ -535,8 +578,6 @@ def run_batch(inputs, outdir, head=None, params=None, *, units="m", scale: float
     shared out; "4GiB"; 0 for none) and ``retries`` reruns of a task whose worker died.
     resume: skip grooms whose output set is complete.  quiet: no progress bar.
     """
-    from tqdm.auto import tqdm
-
     from .io.common import unit_scale
     from .io.outset import check_target, resolve_target
 
@@ -587,7 +628,7 @@ def run_batch(inputs, outdir, head=None, params=None, *, units="m", scale: float
 
         load_head(head, units=unit_scale(units) * scale)
 
-    bar = tqdm(total=len(paths), desc="batch", unit="groom", disable=quiet, initial=len(paths) - len(todo))
+    bar = _progress_bar(len(paths), len(paths) - len(todo), quiet)
     where = "none needed"
     try:
         if todo:
@@ -626,8 +667,7 @@ def _run_tasks(paths, todo, rows, outdir, head, params, load_options, formats, w
         else:
             where = f"client {client.scheduler.address}"
         head_arg = None if head is None else str(head)
-        sizes = {i: (paths[i].stat().st_size if paths[i].is_file() else 0) for i in todo}
-        groups = plan_tasks([sizes[i] for i in todo], workers=_worker_count(client, workers))
+        groups = plan_tasks([estimate_cost(paths[i]) for i in todo], workers=_worker_count(client, workers))
         futures = {}
 
         def submit(group, priority):
