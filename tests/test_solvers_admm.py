@@ -158,3 +158,25 @@ def test_inversion_of_dense_contacts_beyond_clarabels_reach_runs_admm_to_the_q0_
     true = np.linalg.norm(res.rest_curvatures - ref.rest_curvatures) / np.linalg.norm(ref.rest_curvatures)
     assert true <= solve["q0_error_bound"] + ref.report["solve"]["q0_error_bound"]
     assert res.report["equilibrium"]["max_relative_residual"] < 1e-8
+
+
+def test_inversion_admm_gives_up_on_the_rate_of_its_bound_and_keeps_feasible_forces(monkeypatch):
+    """Gauss-Seidel's give_up rule applied to the certified bound's history: with GS_GIVE_UP = 0.05 the limit (80
+    iterations for a budget of 1,600) is below every projection, so ADMM stops at the first judged iteration (400),
+    status "stalled", its forces kept (feasible, with their bound)."""
+    import groomtool.inverse_problem as ip
+    import groomtool.solver_choice as sc
+    from groomtool.examples import example_groom
+    from groomtool.invert import FeasibleSolveWarning, InversionParams, invert_groom
+
+    groom, head = example_groom(60)
+    monkeypatch.setattr(sc, "AUTO_CLARABEL_MAX_CONTACTS", 100)
+    monkeypatch.setattr(ip, "GS_GIVE_UP", 0.05)
+    params = InversionParams(contacts="all", contact_radius=3e-4, q0_tolerance=1e-12, solver_tolerance=1e-12,
+                             max_sweeps=1600, stabilize="none")
+    with pytest.warns(FeasibleSolveWarning, match="stalled"):
+        res = invert_groom(groom, head=head, params=params)
+    solve = res.report["solve"]
+    assert solve["solver"] == "admm" and solve["status"] == "feasible" and solve["stopped_with"] == "stalled"
+    assert solve["iterations"] == 400 and solve["projected_sweeps"] > 0.05 * 1600
+    assert 0 < solve["q0_error_bound"] < 1e-2

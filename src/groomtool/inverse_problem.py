@@ -346,7 +346,7 @@ def solve_inverse_problem(problem: InverseProblem, helix: sh.SuperHelix, params,
     fallback_from).  ``initial_forces`` (m, 3) in newtons, e.g. the previous stabilisation round's:
     Gauss-Seidel starts from them (clarabel ignores them)."""
     from .solvers import solve_contact_problem  # the solvers (clarabel, 0.3 s): kept off the CLI's start
-    from .solvers.gauss_seidel import projected_sweeps
+    from .solvers.gauss_seidel import GIVE_UP_MIN_SWEEPS, give_up_projection, projected_sweeps
 
     cp = problem.contact_problem(helix)
     m = len(problem.mu)
@@ -354,6 +354,7 @@ def solve_inverse_problem(problem: InverseProblem, helix: sh.SuperHelix, params,
     if params.solver == "auto" and method == "gs":  # dense contacts beyond clarabel's reach: the strand-split ADMM
         method = dense_iterative_method(cp, redundant_fraction)
     bounded = problem.gamma > 0 and problem.q0_free is not None
+    gave_up = {}  # ADMM: the projection of its q0 bound that stopped it (give_up_projection on the bound's history)
 
     def run(method):
         with progress(params.max_sweeps, f"contact solve ({method}, {m:,} contacts)", quiet,
@@ -385,7 +386,18 @@ def solve_inverse_problem(problem: InverseProblem, helix: sh.SuperHelix, params,
                 if math.isfinite(shown["q0"]):
                     shown["history"].append((shown["sweeps"], shown["q0"]))
                 postfix()
-                return params.q0_tolerance is not None and shown["q0"] <= params.q0_tolerance
+                if params.q0_tolerance is None:
+                    return False
+                if shown["q0"] <= params.q0_tolerance:
+                    return True
+                if method == "admm":  # Gauss-Seidel's give_up, on the certified bound's rate instead of the residual's
+                    projected = give_up_projection(shown["history"], params.q0_tolerance, GS_GIVE_UP * params.max_sweeps,
+                                                   max(GIVE_UP_MIN_SWEEPS, params.max_sweeps // 4)) \
+                        if shown["history"] else None
+                    if projected is not None:
+                        gave_up["projected"] = projected
+                        return True
+                return False
 
             # the sweep budget (and giving up on it early) is Gauss-Seidel's; clarabel keeps its own iteration limit
             gs_only = {} if method == "clarabel" else {"max_iter": params.max_sweeps}
@@ -417,8 +429,9 @@ def solve_inverse_problem(problem: InverseProblem, helix: sh.SuperHelix, params,
     forces = r.reshape(-1, 3) * problem.f_scale
     # solved: the residual reached solver_tolerance, or (Gauss-Seidel's "certified") the certified rest-curvature
     # error reached q0_tolerance first ("stopped_on" says which)
-    converged = bool(res.converged) or res.status == "certified"
-    status = "solved" if converged else str(res.status)
+    certified = res.status == "certified" and not gave_up
+    converged = bool(res.converged) or certified
+    status = "solved" if converged else ("stalled" if gave_up else str(res.status))
     out = {"forces": forces, "solver": res.method, "status": status, "converged": converged,
            "feasible": feasible, "iterations": int(res.iterations), "residual": float(res.residual),
            "time_s": float(res.time_s), "projected_by": float(moved * problem.f_scale)}
@@ -434,6 +447,8 @@ def solve_inverse_problem(problem: InverseProblem, helix: sh.SuperHelix, params,
                                       else "no bound: the forces are not finite")
     if res.info.get("projected_sweeps") is not None:
         out["projected_sweeps"] = float(res.info["projected_sweeps"])
+    if gave_up:  # ADMM stopped early: its q0 bound would reach q0_tolerance only far beyond the budget
+        out["projected_sweeps"] = float(gave_up["projected"])
     if "polish_sweeps" in res.info:  # clarabel's point finished by Gauss-Seidel (solvers.api)
         out["polish_sweeps"] = int(res.info["polish_sweeps"])
         out["clarabel_residual"] = float(res.info["clarabel_residual"])
