@@ -10,7 +10,10 @@ they do for a user):
 3. (``--shell-loop``) today's practice: one ``groom invert`` process per style.
 
 The outputs of 1 and 2 are compared (rest curvatures of every style, and the status of those that
-fail); memory per worker is each worker's peak RSS (``worker_peak_rss_mib`` in the batch summary).
+fail); memory per worker is each worker's peak RSS (``worker_peak_rss_mib`` in the batch summary). CPU
+counts every descendant (this process is their subreaper: the workers' forkserver outlives ``groom batch``
+by a moment) and is split into the workers' (``worker_cpu_s``), the batch process's (``client_cpu_s``) and
+the rest.
 
     python bench/bench_batch.py [--styles 40] [--workers 2] [--repeat 2] [--shell-loop] [--name batch]
     (--styles 0: all 343)
@@ -143,13 +146,17 @@ def run_batch_cli(paths, head, out: Path, workers: int, params: dict) -> dict:
         raise RuntimeError(proc.stderr[-3000:])
     summary = json.loads((out / "batch_summary.json").read_text())
     per_worker: dict = {}
+    worker_cpu: dict = {}
     for r in summary["grooms"]:
         if r.get("worker") and r.get("worker_peak_rss_mib"):
             per_worker[r["worker"]] = max(per_worker.get(r["worker"], 0.0), r["worker_peak_rss_mib"])
+        if r.get("worker") and r.get("worker_cpu_s"):
+            worker_cpu[r["worker"]] = max(worker_cpu.get(r["worker"], 0.0), r["worker_cpu_s"])
     return {"wall_s": wall, "cpu_s": cpu, "exit_code": proc.returncode,
             "counts": {k: v for k, v in summary["counts"].items() if v},
             "inside_wall_s": summary["wall_s"], "task_s": sum(r["wall_s"] or 0 for r in summary["grooms"]),
             "worker_peak_rss_mib": list(per_worker.values()),
+            "worker_cpu_s": list(worker_cpu.values()), "client_cpu_s": summary.get("client_cpu_s"),
             "tasks_per_worker": [sum(r.get("worker") == w for r in summary["grooms"]) for w in per_worker]}
 
 
@@ -165,6 +172,8 @@ def main() -> int:
                          "--example-strands strands each, contact radius 0.5 mm as in the README): tasks of seconds")
     ap.add_argument("--example-strands", type=int, default=40)
     args = ap.parse_args()
+    if not become_subreaper():
+        print("warning: not a subreaper: the batch's CPU misses its forkserver and workers", file=sys.stderr)
     with tempfile.TemporaryDirectory(prefix="bench_batch_") as tmp:
         tmp = Path(tmp)
         if args.example_grooms:
@@ -256,6 +265,15 @@ def markdown(r: dict) -> str:
                      f"{s0 / r['shell_loop']['wall_s']:.2f}x | | |")
     a = r["agreement"]
     b0 = r["batch"][0]
+    lines += ["", "CPU, where it goes (s): serial process | batch: workers (sum of each worker's CPU at its last "
+              "task) + batch process (scheduler, nannies, client) + the rest (the workers' forkserver, the workers "
+              "after their last task):", ""]
+    for k, (s, b) in enumerate(zip(r["serial"], r["batch"])):
+        if b.get("worker_cpu_s") and b.get("client_cpu_s") is not None:
+            w, c = sum(b["worker_cpu_s"]), b["client_cpu_s"]
+            lines.append(f"- run {k + 1}: serial {s['cpu_s']:.1f} | batch {b['cpu_s']:.1f} = workers {w:.1f} ("
+                         + " + ".join(f"{x:.1f}" for x in b["worker_cpu_s"]) + f") + batch process {c:.1f} + rest "
+                         f"{b['cpu_s'] - w - c:.1f}")
     lines += [
         "",
         f"Best walls: speed-up {r['speed_up_best']:.2f}x. Statuses: serial {r['serial'][0]['counts']}, batch "
