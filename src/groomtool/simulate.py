@@ -82,7 +82,8 @@ class SimulationParams:
     unresolved motion: a strand whose element would turn by more than this in one step has its rates
     scaled down (counted in the result's stats).  detection_skin (m, None: the contact radius): the
     contact set of a detection pass is kept while no sample moved by more than half of it
-    (simulate_contacts.py); 0 detects every step.
+    (simulate_contacts.py); 0 detects every step.  solver, solver_tolerance, max_sweeps, solver_symmetric and
+    solver_anderson: the Coulomb solve of each step (symmetric Gauss-Seidel sweeps, Anderson memory).
     """
 
     dt: float = 1.0 / 240.0
@@ -105,8 +106,15 @@ class SimulationParams:
     max_rotation_per_step: float | None = 0.25
     detection_skin: float | None = None
     solver: str = "auto"
-    solver_tolerance: float = 1e-8
-    max_sweeps: int = 2000  # the contact solver's sweep budget per step
+    # the Coulomb solve of each step (docs/simulation.md section 3): 1e-6 of the largest free reaction moves a
+    # node by ~h 1e-6 |b|max per step (the README example's inverted run drifts 5.1e-9 m over 1 s at 1e-6 and
+    # 4.5e-9 m at 1e-8), and 1e-8 cost its sagging run hundreds of sweeps per step; symmetric sweeps without
+    # Anderson acceleration: 1e-6 in 310 sweeps on its hardest step where the accelerated forward sweeps
+    # took 750 (Anderson cycles on the Coulomb law's stick/slip switches)
+    solver_tolerance: float = 1e-6
+    max_sweeps: int = 500  # the contact solver's sweep budget per step (a step that runs out is counted, with its residual)
+    solver_symmetric: bool = True
+    solver_anderson: int = 0
     refresh_warm_start: bool = True  # one sweep from an accepted warm start (solve_contacts)
     keep_step_corrections: bool = True  # reuse a modified strand's step-matrix correction (factor_step_matrix)
     # Super Space Clothoids: compute their velocity terms A (dyn.clothoid_velocity_terms: exact, by complex steps,
@@ -491,7 +499,8 @@ class Simulator:
                 r, err, iterations, status = r1, err1, 1, "warm_start_swept"
         if not err <= p.solver_tolerance:
             res = solve_contact_problem(problem, law="coulomb", method=p.solver, tol=p.solver_tolerance,
-                                        max_iter=p.max_sweeps, r0=r, scale=scale)
+                                        max_iter=p.max_sweeps, r0=r, scale=scale, symmetric=p.solver_symmetric,
+                                        anderson=p.solver_anderson)
             r, iterations, status = np.asarray(res.r), int(res.iterations), str(res.status)
             err = float(res.residual)
         if self.clothoid:
