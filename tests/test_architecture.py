@@ -133,9 +133,8 @@ USED_OUTSIDE_THE_PACKAGE = {
     "rods/clothoid.py:elastic_energy",    # the same for Super Space Clothoids; docs/clothoid.md's API list
     "rods/cosserat.py:pyelastica_rod",    # the PyElastica loader of the rest data; docs/rest_data.md
     "rods/der.py:der_energy",             # the DER energy of the rest data; docs/rest_data.md
-    # not yet settled, in modules of other work in progress (issue 18): move to tests/reference/ or document
-    "simulate.py:Simulator.energies",
-    "rods/dynamics.py:clothoid_kinetic_energy",
+    "simulate.py:Simulator.energies",     # a state's energies; docs/simulation.md section 4, architecture.md
+    "rods/dynamics.py:clothoid_kinetic_energy",  # T from the point velocities; docs/clothoid.md, architecture.md
 }
 
 
