@@ -192,6 +192,41 @@ def example_stages(outdir, steps: int, skin=None, cpu_time: bool = True) -> dict
     return out
 
 
+def whole_check(outdir, label: str) -> dict:
+    """``groom check OUTDIR`` in full (1 s, both runs, check_groom), every timer on the process CPU time: per run
+    the total, the stages, the solves out of budget and the drifts, as check.json gives them."""
+    time.perf_counter = time.process_time
+    from groomtool.check import check_groom
+
+    t = time.process_time()
+    report = check_groom(outdir)
+    out = {"dir": str(outdir), "code": label, "cpu_s": time.process_time() - t, "strands": report["strands"],
+           "steps": report["steps"]}
+    for run in ("inverted", "naive"):
+        r = report[run]
+        out[run] = {"total_s": r["timings_s"]["total"], "stages_s": {k: v for k, v in r["timings_s"].items()
+                                                                     if k not in ("total", "steps", "per_step")},
+                    "failed_solves": r["solver"]["failures"], "worst_failed_residual": r["solver"]["worst_failed_residual"],
+                    "mean_sweeps": r["solver"]["mean_iterations"], "max_tip_drift_m": r["max_tip_drift_m"]}
+    return out
+
+
+def check_markdown(checks: list) -> list[str]:
+    lines = ["", "## The README example: `groom check example/out` in full (1 s, both runs)", "",
+             "CPU seconds (every timer on process time); one row per measured code. Command: "
+             "`python bench/bench_simulate.py --keep-styles --keep-big --check-dir example/out --check-label LABEL` "
+             "(rows accumulate in simulate.json).", "",
+             "| code | run | CPU s | failed solves / 240 (worst residual) | mean sweeps | max tip drift (m) | stages (s) |",
+             "|---|---|---|---|---|---|---|"]
+    for c in checks:
+        for run in ("inverted", "naive"):
+            r = c[run]
+            stages = ", ".join(f"{k} {v:.1f}" for k, v in sorted(r["stages_s"].items(), key=lambda kv: -kv[1]))
+            lines.append(f"| {c['code']} | {run} | {r['total_s']:.1f} | {r['failed_solves']} "
+                         f"({r['worst_failed_residual']:.1e}) | {r['mean_sweeps']:.0f} | {r['max_tip_drift_m']:.2e} | {stages} |")
+    return lines
+
+
 def inversion_of(outdir) -> dict:
     """How an inversion output directory was made (its report.json): input, units, contacts, radius, stabilisation."""
     path = Path(outdir) / "report.json"
@@ -245,6 +280,8 @@ def example_markdown(example, before=None) -> list[str]:
              "'before' and 'after' were measured one after the other, at the same load). "
              + (f"'before' is {before.get('code', 'the previous code')}, " if before else "")
              + f"'after' {example.get('code', 'this code')}, measured on the same machine under the same load.", "",
+             "A few steps after the first miss the naive run's hard contact solves (from about step 27): the "
+             "whole check's cost is in the table 'groom check example/out in full' below.", "",
              "Command: `python bench/bench_simulate.py --keep-styles --keep-big --example-dir example/out "
              f"--example-steps {example['steps']} --example-before BEFORE.json --example-label LABEL` (BEFORE.json: example_stages "
              "run on the previous code).", "",
@@ -261,7 +298,7 @@ def example_markdown(example, before=None) -> list[str]:
     return lines
 
 
-def markdown(rows, big, meta, example=None, before=None, timings=None) -> str:
+def markdown(rows, big, meta, example=None, before=None, timings=None, checks=None) -> str:
     lines = ["# groom check and forward simulation: benchmark", "",
              f"{meta['date']} on {meta['machine']} ({meta['cpus']} CPUs), Python {meta['python']}; "
              f"{meta['seconds']:g} s simulated at dt = 1/{round(1 / meta['dt'])} s; material: E = 3 GPa, r = 40 um, "
@@ -296,6 +333,8 @@ def markdown(rows, big, meta, example=None, before=None, timings=None) -> str:
         lines += example_markdown(example, before)
     if timings:
         lines += timing_markdown(timings)
+    if checks:
+        lines += check_markdown(checks)
     return "\n".join(lines) + "\n"
 
 
@@ -316,6 +355,8 @@ def main(argv=None) -> int:
     ap.add_argument("--example-before", default=None,
                     help="a JSON of example_stages measured on the previous code, shown as 'before'")
     ap.add_argument("--example-label", default=None, help="what the measured code is (e.g. a commit), in the table")
+    ap.add_argument("--check-dir", default=None, help="an inversion of the README example: groom check in full")
+    ap.add_argument("--check-label", default="this code", help="what the measured code is, in the check table")
     ap.add_argument("--timing-dirs", nargs="*", default=None, metavar="NAME=DIR",
                     help="inversion output directories to time both runs of (steps: --steps), e.g. harolongo=out")
     args = ap.parse_args(argv)
@@ -360,6 +401,12 @@ def main(argv=None) -> int:
         print(f"{name}: " + ", ".join(f"{run} {timings[name][run]['s_per_step_mean']:.2f} s/step"
                                        for run in ("inverted", "naive")), flush=True)
     before = json.loads(Path(args.example_before).read_text()) if args.example_before else previous.get("example_before")
+    checks = list(previous.get("checks") or [])
+    if args.check_dir:
+        checks.append(whole_check(args.check_dir, args.check_label))
+        print(f"groom check {args.check_dir}: " + ", ".join(f"{run} {checks[-1][run]['total_s']:.0f} s CPU, "
+                                                          f"{checks[-1][run]['failed_solves']} failed solves"
+                                                          for run in ("inverted", "naive")), flush=True)
     if big and not args.keep_big:
         for name in ("inverted", "naive"):
             print(f"{big['groom']} {name}: {big[name]['s_per_step_mean']:.2f} s/step, {big[name]['contacts_mean']:.0f} contacts",
@@ -375,9 +422,9 @@ def main(argv=None) -> int:
                "max_curly_curvature_change": max((r["inverted_curvature_change"] for r in stable if r["curly"]), default=0.0)}
     (RESULTS / "simulate.json").write_text(json.dumps({"meta": meta, "summary": summary, "styles": rows, "big": big,
                                                        "example": example, "example_before": before,
-                                                       "timings": timings},
+                                                       "timings": timings, "checks": checks},
                                                       indent=2, default=float) + "\n")
-    (RESULTS / "simulate.md").write_text(markdown(rows, big, meta, example, before, timings))
+    (RESULTS / "simulate.md").write_text(markdown(rows, big, meta, example, before, timings, checks))
     print(json.dumps(summary, indent=2))
     return 0
 
