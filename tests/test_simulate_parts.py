@@ -433,6 +433,12 @@ def test_check_command_with_a_subset(inverted_dir, capsys):
     report["inverted"]["max_tip_drift_unstable_strands_m"] = None
     assert f"1 of the {report['strands']} simulated strands are unstable" in summary(report)
     assert "none of them is among the checked strands" in summary(report)
+    # a failed solve is explained with the tolerance and the budget it missed (check.json's contact_solve)
+    assert report["contact_solve"] == {"tolerance": 1e-6, "max_sweeps": 500}
+    report["naive"]["solver"].update(failures=2, failed_steps=[3, 5], worst_failed_residual=3e-6)
+    text = summary(report)
+    assert "naive: 2 of" in text and "steps 3, 5" in text
+    assert "did not reach residual 1e-06 in 500 sweeps" in text
 
 
 # --------------------------------------------------------------------------- mass matrix assembly

@@ -250,7 +250,8 @@ def check_groom(outdir, seconds: float = 1.0, dt: float | None = None, contacts:
               "seconds": float(seconds), "dt": float(dt), "steps": steps, "contacts": mode,
               "contact_radius_m": base.contact_radius, "head": inv.head is not None,
               "unstable_in_isolation": None if inv.stiffness_ratio is None else int(np.sum(inv.stiffness_ratio >= 1.0)),
-              "per_strand_materials": inv.per_strand(), "model": inv.model}
+              "per_strand_materials": inv.per_strand(), "model": inv.model,
+              "contact_solve": {"tolerance": base.solver_tolerance, "max_sweeps": base.max_sweeps}}
     if inv.model == "clothoid" and not (base.velocity_terms and base.clothoid_velocity_terms):
         report["velocity_terms"] = ("dropped: A(q, qd) is not computed for Super Space Clothoids (zero at rest, so "
                                     "the inverted run is exact; the naive run's sag omits the Coriolis and "
@@ -311,6 +312,10 @@ def summary(report: dict) -> str:
     if report.get("per_strand_materials"):
         lines.append("  material  inverted run with the per-strand stiffness of rest.npz; naive run with the scalar material")
     lines.append("  contact   " + "; ".join(_solver_line(name, report[name]["solver"]) for name in ("inverted", "naive")))
+    solve = report.get("contact_solve")
+    if solve and any(report[name]["solver"]["failures"] for name in ("inverted", "naive")):
+        lines.append(f"            (failed: the step's Coulomb solve did not reach residual {solve['tolerance']:.0e} in "
+                     f"{solve['max_sweeps']} sweeps; its impulses are used as they are, docs/simulation.md section 6)")
     if report.get("unstable_in_isolation"):
         drift = inv.get("max_tip_drift_unstable_strands_m")
         # with --strands the drifts are over the checked strands, which may hold none of them
