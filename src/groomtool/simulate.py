@@ -108,12 +108,13 @@ class SimulationParams:
     solver: str = "auto"
     # the Coulomb solve of each step (docs/simulation.md section 3): 1e-6 of the largest free reaction moves a
     # node by ~h 1e-6 |b|max per step (the README example's inverted run drifts 5.1e-9 m over 1 s at 1e-6 and
-    # 4.5e-9 m at 1e-8), and 1e-8 cost its sagging run hundreds of sweeps per step; symmetric sweeps without
-    # Anderson acceleration: 1e-6 in 310 sweeps on its hardest step where the accelerated forward sweeps
-    # took 750 (Anderson cycles on the Coulomb law's stick/slip switches)
+    # 4.5e-9 m at 1e-8), and 1e-8 cost its sagging run hundreds of sweeps per step; no Anderson acceleration
+    # (it cycles on the Coulomb law's stick/slip switches: the cold first step took 750 sweeps to 1e-6 with it,
+    # 500 without); forward sweeps: the sagging run in 177 s CPU with 44 steps out of budget, symmetric ones
+    # 232 s with 56 (docs/simulation.md section 6)
     solver_tolerance: float = 1e-6
     max_sweeps: int = 500  # the contact solver's sweep budget per step (a step that runs out is counted, with its residual)
-    solver_symmetric: bool = True
+    solver_symmetric: bool = False
     solver_anderson: int = 0
     refresh_warm_start: bool = True  # one sweep from an accepted warm start (solve_contacts)
     keep_step_corrections: bool = True  # reuse a modified strand's step-matrix correction (factor_step_matrix)
