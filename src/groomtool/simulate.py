@@ -83,7 +83,8 @@ class SimulationParams:
     scaled down (counted in the result's stats).  detection_skin (m, None: the contact radius): the
     contact set of a detection pass is kept while no sample moved by more than half of it
     (simulate_contacts.py); 0 detects every step.  solver, solver_tolerance, max_sweeps, solver_symmetric and
-    solver_anderson: the Coulomb solve of each step (symmetric Gauss-Seidel sweeps, Anderson memory).
+    solver_anderson: the Coulomb solve of each step (solver_symmetric: forward + backward sweeps;
+    solver_anderson: the Anderson memory, 0 none).
     """
 
     dt: float = 1.0 / 240.0
@@ -110,8 +111,8 @@ class SimulationParams:
     # node by ~h 1e-6 |b|max per step (the README example's inverted run drifts 5.1e-9 m over 1 s at 1e-6 and
     # 4.5e-9 m at 1e-8), and 1e-8 cost its sagging run hundreds of sweeps per step; no Anderson acceleration
     # (it cycles on the Coulomb law's stick/slip switches: the cold first step took 750 sweeps to 1e-6 with it,
-    # 500 without); forward sweeps: the sagging run in 177 s CPU with 44 steps out of budget, symmetric ones
-    # 232 s with 56 (docs/simulation.md section 6)
+    # 500 without); forward sweeps: the sagging run in 175 s CPU with 43 steps out of budget, symmetric ones
+    # 233 s with 56 (bench/results/simulate.md, docs/simulation.md section 6)
     solver_tolerance: float = 1e-6
     max_sweeps: int = 500  # the contact solver's sweep budget per step (a step that runs out is counted, with its residual)
     solver_symmetric: bool = False
