@@ -6,9 +6,7 @@
   equilibrium; a strand touching nothing gets r = 0 and the isolated rest curvatures.
 """
 
-import dataclasses
 import re
-import warnings
 
 import cvxpy as cp
 import numpy as np
@@ -334,23 +332,6 @@ def test_q0_tolerance_stops_gauss_seidel_once_the_rest_curvatures_are_certified(
     true = np.linalg.norm(res.rest_curvatures - ref.rest_curvatures) / np.linalg.norm(ref.rest_curvatures)
     assert true <= solve["q0_error_bound"] + ref.report["solve"]["q0_error_bound"]
     assert res.report["parameters"]["q0_tolerance"] == 1e-4
-
-
-def test_max_iterations_is_a_deprecated_alias_of_max_sweeps():
-    with pytest.warns(DeprecationWarning, match="max_sweeps"):
-        params = InversionParams(max_iterations=7)
-    assert params.max_sweeps == 7 and params == InversionParams(max_sweeps=7)
-    with pytest.warns(DeprecationWarning, match="max_sweeps"):
-        assert params.max_iterations == 7
-    with pytest.raises(AttributeError):
-        params.max_iterations = 3
-    with pytest.raises(ValueError, match="max_sweeps"):
-        InversionParams(max_sweeps=0)
-    with pytest.raises(TypeError), pytest.warns(DeprecationWarning):
-        InversionParams(max_sweeps=7, max_iterations=7)
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")  # a copy with a new budget: no warning, and the new budget kept
-        assert dataclasses.replace(params, max_sweeps=9).max_sweeps == 9
 
 
 def test_failure_message_of_a_diverged_solve_has_no_tolerance_advice():

@@ -287,28 +287,6 @@ def test_simulate_never_modifies_the_params_and_takes_dt_from_them():
         SimulationParams(detection_skin=-1.0)
 
 
-def test_max_iterations_is_a_deprecated_name_of_max_sweeps():
-    """SimulationParams' sweep budget is max_sweeps (as InversionParams'); the old name still works, with a
-    DeprecationWarning, and dataclasses.replace keeps a new budget."""
-    import dataclasses
-    import warnings
-
-    with pytest.warns(DeprecationWarning, match="max_sweeps"):
-        params = SimulationParams(max_iterations=7)
-    assert params.max_sweeps == 7 and params == SimulationParams(max_sweeps=7)
-    with pytest.warns(DeprecationWarning, match="max_sweeps"):
-        assert params.max_iterations == 7
-    with pytest.raises(AttributeError):
-        params.max_iterations = 3
-    with pytest.raises(TypeError), pytest.warns(DeprecationWarning):
-        SimulationParams(max_sweeps=7, max_iterations=7)
-    with pytest.raises(ValueError, match="max_sweeps"):
-        SimulationParams(max_sweeps=0)
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")
-        assert dataclasses.replace(params, max_sweeps=9).max_sweeps == 9
-
-
 def test_progress_estimate_leaves_out_the_first_step():
     bar = StepProgress([("inverted", 10), ("naive", 10)], enabled=False)
     assert bar.estimate_s() is None
