@@ -105,6 +105,34 @@ def _accumulate_M(strand_ptr, ends_sorted, end_p0, end_p1, cols, vals, rho_end, 
 
 
 @njit(cache=True, fastmath=_FM)
+def _gather_strand(q0, q1, o, n, ends_sorted, end_p0, end_p1, cols, vals, y, t):
+    """t = sum_{e on the strand} J_e^T y_e (the strand's ends q0..q1 of ends_sorted, its dofs o..o + n)."""
+    for k in range(n):
+        t[k] = 0.0
+    for q in range(q0, q1):
+        e = ends_sorted[q]
+        y0 = y[e, 0]
+        y1 = y[e, 1]
+        y2 = y[e, 2]
+        for p in range(end_p0[e], end_p1[e]):
+            t[cols[p] - o] += vals[p, 0] * y0 + vals[p, 1] * y1 + vals[p, 2] * y2
+
+
+@njit(cache=True, fastmath=_FM)
+def _end_times(e, o, end_p0, end_p1, cols, vals, z):
+    """J_e z (3,) for the strand dofs z (indexed from the strand's first dof o)."""
+    a0 = 0.0
+    a1 = 0.0
+    a2 = 0.0
+    for p in range(end_p0[e], end_p1[e]):
+        zp = z[cols[p] - o]
+        a0 += vals[p, 0] * zp
+        a1 += vals[p, 1] * zp
+        a2 += vals[p, 2] * zp
+    return a0, a1, a2
+
+
+@njit(cache=True, fastmath=_FM)
 def _x_step(strand_ptr, ends_sorted, end_p0, end_p1, cols, vals, rho_end, dof_offsets, L_ptr, L, w, x, t):
     """x_e = w_e - J_e M_s^-1 (sum_{e' on s} J_e'^T w_e') / rho_e for every strand s (M_s = L L^T, L lower,
     row-major); t: scratch of the largest n_s."""
@@ -116,15 +144,7 @@ def _x_step(strand_ptr, ends_sorted, end_p0, end_p1, cols, vals, rho_end, dof_of
             continue
         o = dof_offsets[s]
         n = dof_offsets[s + 1] - o
-        for k in range(n):
-            t[k] = 0.0
-        for q in range(q0, q1):
-            e = ends_sorted[q]
-            w0 = w[e, 0]
-            w1 = w[e, 1]
-            w2 = w[e, 2]
-            for p in range(end_p0[e], end_p1[e]):
-                t[cols[p] - o] += vals[p, 0] * w0 + vals[p, 1] * w1 + vals[p, 2] * w2
+        _gather_strand(q0, q1, o, n, ends_sorted, end_p0, end_p1, cols, vals, w, t)
         base = L_ptr[s]
         for k in range(n):  # L y = t
             acc = t[k]
@@ -139,14 +159,7 @@ def _x_step(strand_ptr, ends_sorted, end_p0, end_p1, cols, vals, rho_end, dof_of
             t[k] = acc / L[base + k * n + k]
         for q in range(q0, q1):
             e = ends_sorted[q]
-            a0 = 0.0
-            a1 = 0.0
-            a2 = 0.0
-            for p in range(end_p0[e], end_p1[e]):
-                z = t[cols[p] - o]
-                a0 += vals[p, 0] * z
-                a1 += vals[p, 1] * z
-                a2 += vals[p, 2] * z
+            a0, a1, a2 = _end_times(e, o, end_p0, end_p1, cols, vals, t)
             inv = 1.0 / rho_end[e]
             x[e, 0] = w[e, 0] - a0 * inv
             x[e, 1] = w[e, 1] - a1 * inv
@@ -198,12 +211,7 @@ def _strand_velocity(strand_ptr, ends_sorted, end_p0, end_p1, cols, vals, dof_of
             continue
         o = dof_offsets[s]
         n = dof_offsets[s + 1] - o
-        for k in range(n):
-            t[k] = 0.0
-        for q in range(q0, q1):
-            e = ends_sorted[q]
-            for p in range(end_p0[e], end_p1[e]):
-                t[cols[p] - o] += vals[p, 0] * x[e, 0] + vals[p, 1] * x[e, 1] + vals[p, 2] * x[e, 2]
+        _gather_strand(q0, q1, o, n, ends_sorted, end_p0, end_p1, cols, vals, x, t)
         d0 = D_ptr[s]
         if D_is_diag[s]:
             for k in range(n):
@@ -216,17 +224,7 @@ def _strand_velocity(strand_ptr, ends_sorted, end_p0, end_p1, cols, vals, dof_of
                 t2[k] = acc
         for q in range(q0, q1):
             e = ends_sorted[q]
-            a0 = 0.0
-            a1 = 0.0
-            a2 = 0.0
-            for p in range(end_p0[e], end_p1[e]):
-                z = t2[cols[p] - o]
-                a0 += vals[p, 0] * z
-                a1 += vals[p, 1] * z
-                a2 += vals[p, 2] * z
-            out[e, 0] = a0
-            out[e, 1] = a1
-            out[e, 2] = a2
+            out[e, 0], out[e, 1], out[e, 2] = _end_times(e, o, end_p0, end_p1, cols, vals, t2)
 
 
 class StrandSplit:
