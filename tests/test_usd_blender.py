@@ -49,17 +49,21 @@ DUMP = textwrap.dedent('''
 ''')
 
 
+def blender_attributes(usd_path, tmp_path) -> dict:
+    """The curves' attributes as Blender imports ``usd_path`` (DUMP run by Blender's Python)."""
+    script = tmp_path / "dump.py"
+    script.write_text(DUMP)
+    run = subprocess.run([PYTHON, str(script), str(usd_path), str(tmp_path / "blender.npz")],
+                         capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr[-2000:]
+    return dict(np.load(tmp_path / "blender.npz"))
+
+
 def test_blender_imports_rest_attributes(tmp_path):
     result = synthetic_result(n_strands=8, seed=6)
     arrays = results.load_arrays(result)
     samples = fields.sample(arrays)
-    path = write_usd(result, tmp_path / "groom.usdc")
-    script = tmp_path / "dump.py"
-    script.write_text(DUMP)
-    run = subprocess.run([PYTHON, str(script), str(path), str(tmp_path / "blender.npz")],
-                         capture_output=True, text=True, timeout=300)
-    assert run.returncode == 0, run.stderr[-2000:]
-    got = dict(np.load(tmp_path / "blender.npz"))
+    got = blender_attributes(write_usd(result, tmp_path / "groom.usdc"), tmp_path)
     print("Blender", got["version"])
     assert np.array_equal(got["counts"], np.diff(samples.offsets))
     assert np.abs(got["position"] - samples.points).max() <= 2e-6
@@ -99,13 +103,7 @@ def test_blender_imports_a_clothoid_result(tmp_path):
     result = invert_groom(groom, None, InversionParams(model="clothoid", stabilize="none", discrete_rest_data=False))
     arrays = results.load_arrays(result)
     samples = fields.sample(arrays)
-    path = write_usd(result, tmp_path / "clothoid.usdc")
-    script = tmp_path / "dump.py"
-    script.write_text(DUMP)
-    run = subprocess.run([PYTHON, str(script), str(path), str(tmp_path / "blender.npz")],
-                         capture_output=True, text=True, timeout=300)
-    assert run.returncode == 0, run.stderr[-2000:]
-    got = dict(np.load(tmp_path / "blender.npz"))
+    got = blender_attributes(write_usd(result, tmp_path / "clothoid.usdc"), tmp_path)
     rod, rest = results.result_clothoid(arrays), results.result_clothoid(arrays, rest=True)
     assert np.array_equal(got["counts"], rod.n_elements * 8 + 1)
     assert np.abs(got["position"] - cl.evaluate(rod, samples.strand, samples.arc)[0]).max() <= 2e-6
