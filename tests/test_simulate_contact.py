@@ -15,7 +15,7 @@ from groomtool.contact import as_head_surface
 from groomtool.contact.jacobian import generalized_contact_force
 from groomtool.material import Material
 from groomtool.rods import superhelix as sh
-from groomtool.simulate import (SimulationParams, Simulator, contact_gaps, match_contacts,
+from groomtool.simulate import (SimulationParams, Simulator, State, contact_gaps, match_contacts,
                                 normal_velocity_targets)
 
 GRAVITY = np.array([0.0, -9.81, 0.0])
@@ -135,6 +135,72 @@ def test_inverted_equilibrium_is_exact_for_the_first_step():
     for _ in range(60):
         naive.step()
     assert np.linalg.norm(naive.tips() - tips0, axis=1).max() > 1e-4
+
+
+def test_a_groom_at_rest_reuses_its_assembly_and_moves_as_with_a_new_one_every_step():
+    """Simulator._at_rest_system: at rest the step matrices, contacts and H of the last assembly are kept (only F(q),
+    K (q - q0), the right-hand side and the solve are new): the same motion as assembling every step; a sagging
+    groom never reuses."""
+    helix, sphere = draped_strands()
+    material = Material(friction=0.3)
+    probe = Simulator(helix, helix.curvatures, material, GRAVITY, head=sphere,
+                      params=SimulationParams(dt=1 / 240, contacts="all"))
+    contacts = probe.assemble().contacts
+    m = len(contacts.strand_a)
+    rng = np.random.default_rng(1)
+    r_inv = np.zeros((m, 3))
+    r_inv[:, 0] = material.linear_density * 9.81 * 0.03 * rng.uniform(0.5, 1.5, m)
+    K = sh.stiffness(helix, material.stiffness_diag)
+    F = sh.gravity_force(helix, material.linear_density, GRAVITY)
+    q0 = helix.curvatures - (F + generalized_contact_force(helix, contacts, r_inv)) / np.where(K > 0, K, 1.0)
+    runs = {}
+    for rotation in (1e-7, 0.0):
+        params = SimulationParams(dt=1 / 240, contacts="all", reuse_rotation=rotation)
+        sim = Simulator(helix, q0, material, GRAVITY, head=sphere, params=params, warm_start=(contacts, r_inv))
+        tips0 = sim.tips()
+        for _ in range(40):
+            sim.step()
+        runs[rotation] = (sim.reused_steps, sim.tips(), np.linalg.norm(sim.tips() - tips0, axis=1).max())
+    reused, tips, drift = runs[1e-7]
+    assert reused >= 30 and runs[0.0][0] == 0
+    assert drift < 1e-7 and runs[0.0][2] < 1e-7
+    assert np.linalg.norm(tips - runs[0.0][1], axis=1).max() <= 1e-3 * max(drift, runs[0.0][2]) + 1e-12
+
+    naive = Simulator(helix, helix.curvatures, material, GRAVITY, head=sphere,
+                      params=SimulationParams(dt=1 / 240, contacts="all"))
+    for _ in range(20):
+        naive.step()
+    assert naive.reused_steps == 0
+
+
+def test_a_step_at_rest_has_the_free_rates_and_contact_problem_of_a_new_assembly():
+    """The kept assembly with this step's rates and forces: v_free and b as a fresh assembly's (the change of M, H
+    and Mhat over the curvatures moved since, below reuse_rotation, is all that differs)."""
+    helix, sphere = draped_strands()
+    material = Material(friction=0.3)
+    params = SimulationParams(dt=1 / 240, contacts="all", reuse_rotation=1e-7)
+    sim = Simulator(helix, helix.curvatures, material, GRAVITY, head=sphere, params=params)
+    sim.assemble()
+    assert sim._at_rest is not None
+    rng = np.random.default_rng(2)
+    rates = 1e-2 * rng.normal(size=helix.curvatures.shape) * helix.element_mask[..., None]
+    moved = helix.curvatures + 1e-9 * rng.normal(size=helix.curvatures.shape) * helix.element_mask[..., None]
+    sim.state = State(0.0, moved, rates)
+    kept = sim.assemble()
+    assert sim.reused_steps == 1
+    fresh_sim = Simulator(helix, helix.curvatures, material, GRAVITY, head=sphere,
+                          params=SimulationParams(dt=1 / 240, contacts="all", reuse_rotation=0.0))
+    fresh_sim.state = State(0.0, moved, rates)
+    fresh = fresh_sim.assemble()
+    assert fresh_sim._at_rest is None
+    scale = np.abs(fresh.v_free).max()
+    assert np.abs(kept.v_free - fresh.v_free).max() <= 1e-6 * scale
+    idx = match_contacts(fresh.contacts, kept.contacts, 1e-12)
+    assert np.all(idx >= 0) and len(idx) == len(fresh.contacts.strand_a)
+    b_kept = kept.problem.b.reshape(-1, 3)[idx] * kept.r_scale
+    b_fresh = fresh.problem.b.reshape(-1, 3) * fresh.r_scale
+    assert np.abs(b_kept - b_fresh).max() <= 1e-6 * np.abs(b_fresh).max()
+    assert kept.problem.rho() is sim._at_rest.system.problem.rho()  # W's cached data shared, not rebuilt
 
 
 # --------------------------------------------------------------------------- bookkeeping

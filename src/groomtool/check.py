@@ -189,6 +189,7 @@ def run_summary(result, helix0: sh.SuperHelix, stiffness_ratio=None, strands=Non
                    "max_residual": float(max(st["solver_residuals"], default=0.0)),
                    "mean_iterations": float(np.mean(st["solver_iterations"])) if st["solver_iterations"] else 0.0},
         "detection": {"passes": int(st.get("detection_passes", 0)), "reused": int(st.get("detection_reused", 0))},
+        "steps_at_rest": int(st.get("steps_at_rest", 0)),
         "timings_s": {k: float(v) for k, v in result.timings.items()},
     }
 

@@ -30,6 +30,10 @@ at their arc lengths), so a strand draped over a surface keeps several supports.
 At an equilibrium the inversion produced (K (q - q0) = F + H^T r_inv, r_inv in the cones), v = 0 and
 r = h r_inv solve the first step exactly: u = W (h r_inv) + b = H Mhat^-1 h (F - K (q - q0) + H^T r_inv) = 0.
 
+A groom at rest (no element turned by more than params.reuse_rotation since the last full assembly) keeps that
+assembly's M, A, factorised Mhat, contacts and H; F(q), K (q - q0), the right-hand side and the contact solve are
+new every step (Simulator._at_rest_system; docs/simulation.md section 2).
+
 Super Space Clothoids (rods/clothoid.py, ``groom invert --model clothoid``) take the same step on their nodal
 curvatures (Simulator._clothoid_dynamics: M with the cross-section rotation, complex-step dF/dq, the block-tridiagonal
 K; their velocity terms A dropped, exact at rest, unless params.clothoid_velocity_terms; sticking impulses
@@ -63,6 +67,7 @@ from .simulate_motion import HeadMotion
 from .simulate_motion import rigid_motion as _rigid_motion  # noqa: F401 (re-exported)
 
 CONTACT_MODES = ("none", "head", "all")
+REUSE_MAX_BYTES = 1 << 30  # the mass matrices a groom at rest keeps (Simulator._keeps_inertia); beyond, no reuse
 
 
 # --------------------------------------------------------------------------- parameters
@@ -82,7 +87,8 @@ class SimulationParams:
     unresolved motion: a strand whose element would turn by more than this in one step has its rates
     scaled down (counted in the result's stats).  detection_skin (m, None: the contact radius): the
     contact set of a detection pass is kept while no sample moved by more than half of it
-    (simulate_contacts.py); 0 detects every step.  solver, solver_tolerance, max_sweeps, solver_symmetric and
+    (simulate_contacts.py); 0 detects every step.  reuse_rotation (rad, 0: off): a Super-Helix groom at rest
+    (static head; no element turned by more than this since the last assembly) keeps that assembly's M, factorised Mhat, contacts and H (Simulator._at_rest_system).  solver, solver_tolerance, max_sweeps, solver_symmetric and
     solver_anderson: the Coulomb solve of each step (solver_symmetric: forward + backward sweeps;
     solver_anderson: the Anderson memory, 0 none).
     """
@@ -119,6 +125,10 @@ class SimulationParams:
     solver_anderson: int = 0
     refresh_warm_start: bool = True  # one sweep from an accepted warm start (solve_contacts)
     keep_step_corrections: bool = True  # reuse a modified strand's step-matrix correction (factor_step_matrix)
+    # a groom at rest (every element within reuse_rotation rad of its orientation at the last assembly) keeps that
+    # assembly's step matrices, contact set and H; F(q), K (q - q0), the
+    # right-hand side and the contact solve are new every step (AtRestSystem; 0: assemble every step)
+    reuse_rotation: float = 1e-7
     # Super Space Clothoids: compute their velocity terms A (dyn.clothoid_velocity_terms: exact, by complex steps,
     # 80-170 ms per step on 5-strand USC styles, 2-4x M and dF/dq); off: dropped (exact at rest)
     clothoid_velocity_terms: bool = False
@@ -131,6 +141,8 @@ class SimulationParams:
         for name in ("mass_damping", "stiffness_damping", "air_drag", "push_rate", "max_push_speed"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
+        if not (self.reuse_rotation >= 0):
+            raise ValueError(f"reuse_rotation must be >= 0, got {self.reuse_rotation}")
         if self.detection_skin is not None and not (self.detection_skin >= 0):
             raise ValueError(f"detection_skin must be >= 0, got {self.detection_skin}")
         if not (self.rotational_inertia_scale > 0):
@@ -169,7 +181,19 @@ class StepSystem:
     r_scale: float = 1.0
     u_scale: float = 1.0
     r0: np.ndarray | None = None
+    w: np.ndarray | None = None  # (3m,) the contact velocities that do not depend on v' (moving head, -ubar)
     stats: dict = field(default_factory=dict)
+
+
+@dataclass
+class AtRestSystem:
+    """What a step at rest keeps from the last full assembly (Simulator._at_rest_system): the curvatures it was
+    built at, the mass matrices M and velocity terms A per chunk of strands, and its system (factors, contacts,
+    H, the contact problem's W)."""
+
+    curvatures: np.ndarray
+    inertia: list  # [(first, stop, M (chunk, n, n), A (chunk, N_c, 3) or None)]
+    system: StepSystem
 
 
 @dataclass
@@ -244,6 +268,9 @@ class Simulator:
         self.clamped_strands = 0  # strand-steps whose rates were scaled down (_limit_rotation)
         self._corrections = StepCorrections(helix.n_strands) if self.params.keep_step_corrections else None
         self._factors = None  # the step's Cholesky factors (StrandFactors), overwritten by the next step
+        self._at_rest: AtRestSystem | None = None  # the last assembly, while the groom stays at rest
+        self._inertia_kept = None  # the M and A of the assembly under way, for _at_rest (_keeps_inertia)
+        self.reused_steps = 0  # steps that reused the last assembly (_at_rest_system)
         self._chunks = strand_chunks(self._dof_blocks)
         self._contacts_on = self.params.contacts == "all" or (self.params.contacts == "head" and head is not None)
         self._radius = self.params.contact_radius
@@ -296,9 +323,73 @@ class Simulator:
         st = self.state
         t0 = time.perf_counter()
         pose = self.motion.pose(st.time)
+        if self._at_rest is not None:
+            if self._still_at_rest(pose):
+                return self._at_rest_system(st, pose, t0)
+            self._at_rest = None
         dynamics = self._clothoid_dynamics if self.clothoid else self._helix_dynamics
         helix, kin, v_free, t0 = dynamics(st, pose, t0)
-        return self._contact_system(StepSystem(helix=helix, kin=kin, factors=self._factors, v_free=v_free), pose, t0)
+        system = self._contact_system(StepSystem(helix=helix, kin=kin, factors=self._factors, v_free=v_free), pose, t0)
+        if self._inertia_kept is not None:
+            self._at_rest = AtRestSystem(st.curvatures.copy(), self._inertia_kept, system)
+            self._inertia_kept = None
+        return system
+
+    def _keeps_inertia(self, pose) -> bool:
+        """Whether this assembly keeps M and A for the steps at rest after it: params.reuse_rotation on, a static
+        head, Super-Helices, and the mass matrices within REUSE_MAX_BYTES."""
+        if not (self.params.reuse_rotation > 0) or pose.moving or self.clothoid:
+            return False
+        return sum((b - a) * (3 * int(self.n_elements[a:b].max())) ** 2 * 8 for a, b in self._chunks) <= REUSE_MAX_BYTES
+
+    def _still_at_rest(self, pose) -> bool:
+        """Every element within reuse_rotation of its orientation at the last assembly: an element's frame has
+        turned by at most sum_j l_j |dq_j| over the elements j up to it (dq the curvature change since the
+        assembly).  A groom in motion fails it the step after its assembly (h sum_j l_j |v_j| >= reuse_rotation);
+        one at rest may vibrate at round-off amplitude (the README example's inverted groom: 1e-7 rad a step
+        back and forth) without leaving it."""
+        if pose.moving:
+            return False
+        dq = self.state.curvatures - self._at_rest.curvatures
+        turned = np.max(np.sum(self.lengths * np.linalg.norm(dq, axis=-1), axis=1), initial=0.0)
+        return bool(turned < self.params.reuse_rotation)
+
+    def _at_rest_system(self, st: State, pose, t0: float) -> StepSystem:
+        """A step at rest (_still_at_rest): the kept M, A, factorised Mhat, contacts and H of the last assembly,
+        with this step's F(q), K (q - q0) and rates:  v_free = Mhat^-1 (M v + h (F - K (q - q0) - A)),
+        b = H v_free + w.  Exact up to the change of M, A, Mhat and H over reuse_rotation (relative ~1e-7)."""
+        p = self.params
+        h = p.dt
+        kept = self._at_rest.system
+        helix = sh.SuperHelix(pose.roots, pose.frames, self.lengths, st.curvatures, self.n_elements)
+        kin = sh.kinematics(helix)
+        force = sh.gravity_force(helix, self.inertia.linear, self.gravity, kin) - self.K * (st.curvatures - self.rest)
+        if self.external is not None:
+            force = force + self.external
+        S, N = self.lengths.shape
+        rhs = np.zeros((S, 3 * N))
+        for a, b, M, A in self._at_rest.inertia:
+            n = M.shape[1]
+            Nc = n // 3
+            f = force[a:b, :Nc] if A is None else force[a:b, :Nc] - A
+            rhs[a:b, :n] = np.einsum("sij,sj->si", M, st.rates[a:b, :Nc].reshape(b - a, n)) + h * f.reshape(b - a, n)
+        rhs[~np.repeat(self.mask, 3, axis=1)] = 0.0
+        v_free = kept.factors.solve(rhs).reshape(S, N, 3)
+        system = StepSystem(helix=helix, kin=kin, factors=kept.factors, v_free=v_free)
+        self.reused_steps += 1
+        t0 = self._time("at_rest", t0)
+        system.contacts = kept.contacts
+        if kept.contacts is not None:
+            system.stats["contacts"] = len(kept.contacts.strand_a)
+        if kept.problem is None:
+            return system
+        system.H, system.w = kept.H, kept.w
+        b = kept.H @ helix.to_flat(v_free).ravel() + kept.w
+        system.problem = kept.problem.with_free_velocity(b / kept.r_scale)
+        system.r_scale, system.u_scale = kept.r_scale, kept.u_scale
+        system.r0 = (self.tracker.initial_impulses(kept.contacts) / kept.r_scale).ravel()
+        self._time("at_rest", t0)
+        return system
 
     def _helix_dynamics(self, st: State, pose, t0: float):
         """Super-Helices: M and A (compiled), F and the generators of dF/dq, the factorised Mhat and the free rates."""
@@ -318,6 +409,7 @@ class Simulator:
         rhs = np.zeros((S, 3 * N))
         if self._factors is None:
             self._factors = StrandFactors(self._dof_blocks)
+        self._inertia_kept = [] if self._keeps_inertia(pose) else None
         t0 = self._time("dynamics", t0)
         # per chunk of strands (M never holds a whole large groom): M and A, then
         # rhs = M v + h (F - K (q - q0) - A) and Mhat = (1 + h alpha) M + (h^2 + h beta) K - h^2 dF/dq factorised
@@ -328,6 +420,8 @@ class Simulator:
             Nc = n // 3
             f = force[a:b, :Nc] if A is None else force[a:b, :Nc] - A
             rhs[a:b, :n] = np.einsum("sij,sj->si", M, st.rates[a:b, :Nc].reshape(b - a, n)) + h * f.reshape(b - a, n)
+            if self._inertia_kept is not None:
+                self._inertia_kept.append((a, b, M.copy(), A))
             t0 = self._time("dynamics", t0)
             dF = tuple(x[a:b, :Nc] for x in parts) if parts is not None else M
             _, modified = factor_step_matrix(M, dF, self.n_elements[a:b], self._corrections, a_scale=1.0 + h * alpha,
@@ -440,6 +534,7 @@ class Simulator:
             system.contacts = system.contacts.subset(keep)
             H = system.H = H[np.repeat(keep, 3)]
             w = w.reshape(-1, 3)[keep].ravel()
+        system.w = w
         b = H @ helix.to_flat(system.v_free).ravel() + w
         # the problem on the dofs the contacts move: strand s's first k_s (a contact on element e moves the
         # dofs of elements 0..e only), with D_s = (Mhat_s^-1)[:k_s, :k_s] (StrandFactors.leading_inverse)
@@ -647,6 +742,7 @@ def simulate(helix: sh.SuperHelix, rest_curvatures, material: Material, gravity,
              "rate_limited_strand_steps": sim.clamped_strands,
              "detection_passes": tracker.passes if tracker is not None else 0,
              "detection_reused": tracker.reused if tracker is not None else 0,
+             "steps_at_rest": sim.reused_steps,
              "model": "clothoid" if sim.clothoid else "superhelix",
              "velocity_terms": sim.velocity_terms}
     return SimulationResult(times=np.array(times), frames=np.stack(frames), offsets=offsets, tips=np.stack(tips),

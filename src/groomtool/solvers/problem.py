@@ -7,6 +7,7 @@ In the inverse problem D = K^{-2} (diagonal); in dynamics D = M^{-1} (dense per 
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass, field
 from typing import Sequence
 
@@ -164,6 +165,16 @@ class ContactProblem:
             H, G = self.packed()
             self._cache["diag"] = diagonal_blocks(H, G, self.gamma)
         return self._cache["diag"]
+
+    def with_free_velocity(self, b: np.ndarray) -> "ContactProblem":
+        """The same W (H, D, gamma, mu, and what is cached from them: packed rows, diagonal blocks, rho) with another
+        free velocity b (3m,): a new problem object, the cache shared (it does not depend on b)."""
+        b = np.ascontiguousarray(b, dtype=np.float64).reshape(-1)
+        if b.shape[0] != self.H.shape[0]:
+            raise ValueError(f"b has {b.shape[0]} entries, expected {self.H.shape[0]}")
+        other = copy.copy(self)
+        other.b = b
+        return other
 
     # ------------------------------------------------------------------ measures
     def rho(self) -> np.ndarray:
