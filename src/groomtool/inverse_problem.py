@@ -337,14 +337,17 @@ def rest_curvature_error_bound(problem: InverseProblem, cp, r, u=None, line_sear
 
 
 def solve_inverse_problem(problem: InverseProblem, helix: sh.SuperHelix, params, quiet: bool = True,
-                          redundant_fraction: float = 1.0, initial_forces=None) -> dict:
+                          redundant_fraction: float = 1.0, initial_forces=None, initial_state=None) -> dict:
     """Solve the scaled SOCQP with the chosen solver; forces returned in newtons (m, 3).  ``params``: the
     InversionParams (solver, solver_tolerance, max_sweeps, q0_tolerance).  The progress bar counts
     Gauss-Seidel sweeps (clarabel's polish included; ADMM iterations) and shows the residual.  ``auto``: choose_solver,
     then on dense contacts beyond 10,000 the strand-split ADMM (solver_choice.dense_iterative_method); if
     its Gauss-Seidel does not converge on at most 10,000 contacts, clarabel takes over (report:
     fallback_from).  ``initial_forces`` (m, 3) in newtons, e.g. the previous stabilisation round's:
-    Gauss-Seidel starts from them (clarabel ignores them)."""
+    Gauss-Seidel starts from them (clarabel ignores them).  The strand-split ADMM returns its end state as
+    ``admm_state`` (opaque; None for the other solvers); given back as ``initial_state`` on a problem with the same
+    contacts (the same H: another K, as after stiffening), ADMM starts from it instead of ``initial_forces`` (its
+    multipliers carried over, rescaled for the new K: admm.ADMMState); the other solvers ignore it."""
     from .solvers import solve_contact_problem  # the solvers (clarabel, 0.3 s): kept off the CLI's start
     from .solvers.gauss_seidel import GIVE_UP_MIN_SWEEPS, give_up_projection, projected_sweeps
 
@@ -355,6 +358,7 @@ def solve_inverse_problem(problem: InverseProblem, helix: sh.SuperHelix, params,
         method = dense_iterative_method(cp, redundant_fraction)
     bounded = problem.gamma > 0 and problem.q0_free is not None
     gave_up = {}  # ADMM: the projection of its q0 bound that stopped it (give_up_projection on the bound's history)
+    admm_state = {}  # ADMM: its end state ("state"), for a later solve's initial_state
 
     def run(method):
         with progress(params.max_sweeps, f"contact solve ({method}, {m:,} contacts)", quiet,
@@ -405,6 +409,10 @@ def solve_inverse_problem(problem: InverseProblem, helix: sh.SuperHelix, params,
                 gs_only["give_up"] = GS_GIVE_UP
             if method != "clarabel" and initial_forces is not None:
                 gs_only["r0"] = np.asarray(initial_forces, dtype=np.float64).reshape(-1) / problem.f_scale
+            if method == "admm":
+                gs_only["state_out"] = admm_state
+                if initial_state is not None:
+                    gs_only["initial_state"] = initial_state
             if method != "clarabel" and bounded and (params.q0_tolerance is not None or not quiet):
                 gs_only["stop"] = stop
             return solve_contact_problem(cp, law="soc", method=method, tol=params.solver_tolerance, callback=show,
@@ -456,5 +464,6 @@ def solve_inverse_problem(problem: InverseProblem, helix: sh.SuperHelix, params,
         out["fallback_from"] = fallback
         out["time_s"] += fallback["time_s"]
     out["redundant_strand_fraction"] = float(redundant_fraction)
+    out["admm_state"] = admm_state.get("state") if res.method == "admm" else None
     return out
 

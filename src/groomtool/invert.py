@@ -278,16 +278,18 @@ def invert_groom(groom: Groom, head=None, params: InversionParams | None = None,
         if given.shape != (helix.n_strands,) or not np.all(np.isfinite(given) & (given > 0)):
             raise ValueError(f"stiffness_factor must be {helix.n_strands} positive numbers, one per strand")
         factor = given.copy()
-    held, rounds, history = None, 0, []
+    held, rounds, history, admm_state = None, 0, [], None
     while True:
         if contacts is not None:
             with timer.stage("solve"):
                 problem = build_inverse_problem(helix, F, H, material, gravity, params.guess, params.gamma, mu_solve,
                                                 stiffness_factor=factor)
-                # a re-solve after stiffening starts from the previous round's forces
+                # a re-solve after stiffening starts from the previous round's forces (Gauss-Seidel) or the
+                # previous round's whole state (the strand-split ADMM: its multipliers too, rescaled for the new K)
                 solve = solve_inverse_problem(problem, helix, params, quiet, redundant,
-                                              initial_forces=forces if rounds > 0 else None)
-            forces = solve["forces"]
+                                              initial_forces=forces if rounds > 0 else None,
+                                              initial_state=admm_state if rounds > 0 else None)
+            forces, admm_state = solve["forces"], solve.pop("admm_state", None)
             report["solve"] = {k: v for k, v in solve.items() if k != "forces"}
             report["solve"]["objective"] = problem.objective(forces.ravel())
             report["solve"]["cone_violation"] = cone_violation(forces, mu_solve)

@@ -250,6 +250,7 @@ class StrandSplit:
         self.strand_ptr = np.zeros(S + 1, dtype=np.int64)
         np.cumsum(np.bincount(end_strand, minlength=S), out=self.strand_ptr[1:])
         self.cend_ptr, self.end_contact, self.end_p0, self.end_p1 = cend_ptr, end_contact, end_p0, end_p1
+        self.end_strand = end_strand
         self.H, self.off = H, off
         self.rho_c = np.ascontiguousarray(rho_c, dtype=np.float64)
         self.rho_end = np.ascontiguousarray(self.rho_c[end_contact])
@@ -304,6 +305,53 @@ def strand_split_bytes(problem, anderson: int = ANDERSON) -> int:
     return int(8 * np.sum(sizes[used].astype(np.int64) ** 2) + ends * (4 * 8 + 5 * 3 * 8 + 2 * anderson * 3 * 4))
 
 
+def strand_traces(problem) -> np.ndarray:
+    """tr(D_s) per strand of a ContactProblem (how much each strand's D changed between two runs)."""
+    out = np.empty(problem.n_strands)
+    for s, d in enumerate(problem.D_blocks):
+        out[s] = float(np.sum(d)) if d.ndim == 1 else float(np.trace(d))
+    return out
+
+
+@dataclass
+class ADMMState:
+    """run_admm's state at the end of a run, to start a later run on a problem with the same contacts and strands
+    (the same H: the same ends) but another D and b, e.g. the inversion's next stabilisation round (K raised on
+    some strands).  Opaque to callers: pass it back as ``initial_state``.
+
+    What carries over when D changes: the iteration's state is z_e = x^_e + lam_e per end (lam = y / rho, y the
+    unscaled multiplier of the consensus x_e = s_i(e)).  At the fixed point x^_e = s_i and
+    y_e = -J_e D_s J_s^T x_s (minus strand s's part of contact i's velocity): the forces carry over unchanged, and
+    y_e, at the same forces, scales with D_s.  So the new run starts from
+    z_e = s_i + (z_e - s_i) g_s rho_i / rho'_i, g_s = tr(D'_s) / tr(D_s) (exact for D'_s = g_s D_s, as a stiffness
+    factor gives: K^-2 / w_scale), rho' the new problem's own rho (its factors are new anyway).  For a converged
+    state that is the start the forces alone give; measured on example_groom(1000)'s stiffening re-solves, the
+    unconverged state saves no iterations either (docs/solvers.md section 12)."""
+
+    z: np.ndarray  # (E, 3) the Douglas-Rachford variable per end
+    s: np.ndarray  # (m, 3) the forces (in the cones) of the last iteration
+    rho_c: np.ndarray  # (m,) rho per contact
+    d_trace: np.ndarray  # (S,) tr(D_s) per strand
+    end_strand: np.ndarray  # (E,) ends' strands (contact-major): the structure the state belongs to
+    cend_ptr: np.ndarray  # (m + 1,)
+
+    def fits(self, split) -> bool:
+        """Whether the state belongs to the same contact ends as ``split`` (a StrandSplit)."""
+        return (self.z.shape[0] == split.n_ends and self.cend_ptr.shape == split.cend_ptr.shape
+                and np.array_equal(self.cend_ptr, split.cend_ptr) and np.array_equal(self.end_strand, split.end_strand)
+                and self.d_trace.shape[0] == split.problem.n_strands)
+
+
+def _start_from_state(state: ADMMState, split, rho_c: np.ndarray, d_trace: np.ndarray):
+    """z (E, 3) and s (m, 3) for a new run from ``state`` on the problem of ``split`` (rho_c: its rho, d_trace: its
+    strand_traces): the forces kept, each end's multiplier rescaled for the new D and rho (ADMMState)."""
+    s = np.array(state.s, dtype=np.float64)
+    se = s[split.end_contact]
+    g = np.divide(d_trace, state.d_trace, out=np.ones_like(d_trace), where=state.d_trace > 0)
+    f = g[split.end_strand] * state.rho_c[split.end_contact] / split.rho_end
+    return se + (state.z - se) * f[:, None], s
+
+
 @dataclass
 class ADMMOutcome:
     r: np.ndarray  # (3m,) the last s (in the cones)
@@ -316,6 +364,8 @@ class ADMMOutcome:
     stopped_by_rule: bool = False
     anderson_restarts: int = 0
     warm_sweeps: int = 0
+    state: ADMMState | None = None  # the end state, for a later run's initial_state
+    from_state: bool = False  # whether this run started from an initial_state
 
 
 def run_admm(
@@ -333,11 +383,17 @@ def run_admm(
     time_limit: float | None = None,
     callback=None,
     stop=None,
+    initial_state: ADMMState | None = None,
+    state_out: dict | None = None,
 ) -> ADMMOutcome:
     """Strand-split ADMM (module docstring) on a ContactProblem, SOC law.  Starts from r0 (projected onto the
     cones) or, without one, from ``warm_sweeps`` Gauss-Seidel sweeps.  Every ``check_every`` iterations: the
     residual of residual.py on s (stop at tol), callback(iterations, residual), stop(r, u) -> bool (the caller's
-    rule, e.g. the certified rest-curvature bound: True ends the run, outcome.stopped_by_rule), time_limit."""
+    rule, e.g. the certified rest-curvature bound: True ends the run, outcome.stopped_by_rule), time_limit.
+    ``initial_state``: a previous run's outcome.state (ADMMState) on a problem with the same H (another D and b):
+    the run starts from it (r0 and the Gauss-Seidel sweeps are then not used; a state of other contacts is
+    ignored).  ``state_out`` (a dict): gets the end state under "state" (for callers that reach run_admm through
+    solve_contact_problem, whose result does not carry it)."""
     from .certificate import project_forces
 
     if not 0.0 < alpha < 2.0:
@@ -356,16 +412,22 @@ def run_admm(
     if scale is None:
         scale = _res.residual_scale(problem.b, rho)
     warm = 0
-    if r0 is None and warm_sweeps > 0:
+    d_trace = strand_traces(problem)
+    if initial_state is not None and not initial_state.fits(split):
+        initial_state = None
+    if initial_state is None and r0 is None and warm_sweeps > 0:
         from .gauss_seidel import MatrixFreeOperator, run_gauss_seidel
 
         out = run_gauss_seidel(MatrixFreeOperator(problem), "soc", tol=tol, max_sweeps=warm_sweeps, scale=scale)
         r0, warm = out.r, out.sweeps
-    s = np.zeros((m, 3)) if r0 is None else project_forces(r0, mu)[0].reshape(m, 3)
     E = split.n_ends
-    # the ADMM fixed point's multipliers for s: lam_e = -(strand s(e)'s part of u_i) / rho_i, z = x^ + lam
-    xh = np.ascontiguousarray(s[split.end_contact])
-    z = xh - split.strand_velocity(xh) / split.rho_end[:, None]
+    if initial_state is not None:
+        z, s = _start_from_state(initial_state, split, rho_c, d_trace)
+    else:
+        s = np.zeros((m, 3)) if r0 is None else project_forces(r0, mu)[0].reshape(m, 3)
+        # the ADMM fixed point's multipliers for s: lam_e = -(strand s(e)'s part of u_i) / rho_i, z = x^ + lam
+        xh = np.ascontiguousarray(s[split.end_contact])
+        z = xh - split.strand_velocity(xh) / split.rho_end[:, None]
     setup_s = time.perf_counter() - t0
 
     def measure(r):
@@ -417,5 +479,9 @@ def run_admm(
     if history[-1][0] != k:
         res, u = measure(s)
         history.append((k, res, time.perf_counter() - t0))
+    state = ADMMState(z=z.copy(), s=s.copy(), rho_c=rho_c.copy(), d_trace=d_trace, end_strand=split.end_strand,
+                      cend_ptr=split.cend_ptr)
+    if state_out is not None:
+        state_out["state"] = state
     return ADMMOutcome(s.reshape(-1).copy(), float(res), k, bool(res <= tol), history, time.perf_counter() - t0,
-                       setup_s, by_rule, restarts, warm)
+                       setup_s, by_rule, restarts, warm, state, initial_state is not None)
