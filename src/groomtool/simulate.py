@@ -582,23 +582,30 @@ class Simulator:
             return law_residual(r, problem.velocity(r), problem.mu, problem.rho(), scale, law="coulomb")
 
         r = system.r0
-        err = error(r)
         iterations, status = 0, "warm_start"
-        if err <= p.solver_tolerance and p.refresh_warm_start:
-            # one sweep even so: an accepted warm start is a force held constant, not a constraint, and a
-            # strand held by dead loads alone can be unstable (the round-off drift then grows until the
-            # residual exceeds the tolerance); the sweep re-imposes every contact's law on the current b
+        if p.refresh_warm_start:
+            # one sweep from the warm start in any case: an accepted warm start is a force held constant, not a
+            # constraint, and a strand held by dead loads alone can be unstable (the round-off drift then grows
+            # until the residual exceeds the tolerance); the sweep re-imposes every contact's law on the current
+            # b.  The solver's residuals (its history's first, of r0, and its last) are error(r0) and error(r1):
+            # the same u, mu, rho and scale.
             res = solve_contact_problem(problem, law="coulomb", method="gs", tol=0.0, max_iter=1, r0=r,
                                         scale=scale)
-            r1 = np.asarray(res.r)
-            err1 = float(res.residual)  # the solver's own residual of r1 is error(r1): the same u, mu, rho, scale
-            if err1 <= p.solver_tolerance:
-                r, err, iterations, status = r1, err1, 1, "warm_start_swept"
+            history = res.info.get("history")
+            err = float(history[0][1]) if history else error(r)
+            if err <= p.solver_tolerance:
+                if float(res.residual) <= p.solver_tolerance:
+                    r, err, iterations, status = np.asarray(res.r), float(res.residual), 1, "warm_start_swept"
+            else:  # the solve goes on from the sweep's output (the same first sweep it would take)
+                r, err, iterations = np.asarray(res.r), float(res.residual), 1
+        else:
+            err = error(r)
         if not err <= p.solver_tolerance:
             res = solve_contact_problem(problem, law="coulomb", method=p.solver, tol=p.solver_tolerance,
-                                        max_iter=p.max_sweeps, r0=r, scale=scale, symmetric=p.solver_symmetric,
-                                        anderson=p.solver_anderson)
-            r, iterations, status = np.asarray(res.r), int(res.iterations), str(res.status)
+                                        max_iter=max(1, p.max_sweeps - iterations), r0=r, scale=scale,
+                                        symmetric=p.solver_symmetric, anderson=p.solver_anderson)
+            r, status = np.asarray(res.r), str(res.status)
+            iterations += int(res.iterations)
             err = float(res.residual)
         if self.clothoid:
             r, err, status = _polish_sticking(problem, r, err, error, status)

@@ -388,6 +388,8 @@ class ContactTracker:
         (same strands, arc lengths within 2 r_c), else the warm start's."""
         r0 = np.zeros((len(contacts.strand_a), 3))
         known = self.previous if self.previous is not None and self.previous[1] is not None else self.warm_start
+        if known is not None and known[0] is contacts and len(known[1]) == len(r0):  # the same set (a step at rest)
+            return np.array(known[1], dtype=np.float64)
         if known is not None and len(known[1]):
             idx = match_contacts(known[0], contacts, 2.0 * self.radius + 1e-12)
             has = idx >= 0
