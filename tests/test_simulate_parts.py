@@ -287,17 +287,35 @@ def test_simulate_never_modifies_the_params_and_takes_dt_from_them():
         SimulationParams(detection_skin=-1.0)
 
 
-def test_progress_estimate_leaves_out_the_first_step():
+def test_progress_estimate_leaves_out_the_first_step_and_estimates_each_run_from_its_own_steps():
     bar = StepProgress([("inverted", 10), ("naive", 10)], enabled=False)
     assert bar.estimate_s() is None
     bar.step(30.0)  # compiling
     assert bar.estimate_s() is None
     for _ in range(3):
         bar.step(0.1)
-    assert bar.estimate_s() == pytest.approx(0.1 * 16)
+    assert bar.estimate_s() == pytest.approx(0.1 * 6)  # this run's 6 steps left; the naive run is not guessed
     bar.next_run()
     bar.step(0.2)  # the first step of the second run is left out as well
-    assert bar.estimate_s() == pytest.approx(0.1 * 9)
+    assert bar.estimate_s() is None
+    bar.step(1.0)  # the naive run's own rate, not the inverted run's
+    assert bar.estimate_s() == pytest.approx(1.0 * 8)
+
+
+def test_progress_announces_each_run_and_names_the_runs_to_come():
+    import io
+
+    stream = io.StringIO()
+    bar = StepProgress([("inverted", 10), ("naive", 10)], enabled=True, stream=stream)
+    for seconds in (5.0, 0.05, 0.05, 0.05):
+        bar.step(seconds)
+    bar.next_run()
+    for seconds in (2.0, 0.5, 0.5, 0.5):
+        bar.step(seconds)
+    bar.close()
+    text = stream.getvalue()
+    assert "estimated run time of inverted: ~0 s more for 6 steps (50 ms/step); then naive (10 steps)" in text
+    assert "estimated run time of naive: ~3 s more for 6 steps (500 ms/step)" in text
 
 
 # --------------------------------------------------------------------------- groom check

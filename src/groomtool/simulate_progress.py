@@ -3,8 +3,10 @@
 The first step of a run loads (or, on a first run, compiles) the numba kernels and factorises every
 strand's step matrix from scratch (the unstable-mode corrections are kept for the later steps:
 minutes for thousands of long strands): it is shown as such and left out of the estimate, which is the mean of the later
-steps times the steps left (over every run still to come, e.g. groom check's two).  The estimate is
-printed once, after ``announce_after`` measured steps.
+steps of the run times its steps left.  Runs differ too much to estimate one from another (groom check's inverted
+groom at rest takes tens of milliseconds a step, the sagging naive one ten times more: its contact solves), so each
+run is estimated from its own steps, printed once per run after ``announce_after`` of them, with the runs still to
+come named.
 """
 
 from __future__ import annotations
@@ -28,17 +30,19 @@ class StepProgress:
         self.stream = stream if stream is not None else sys.stderr
         self.index = 0
         self.done_in_run = 0
-        self.measured: list[float] = []  # step times after the first step of each run
+        self.measured: list[float] = []  # step times of the current run after its first step
         self.announced = False
         self.bar = None
         self.t0 = time.perf_counter()
         self._open()
 
     def steps_left(self) -> int:
-        return sum(n for _, n in self.runs[self.index:]) - self.done_in_run
+        """Steps left in the current run."""
+        return (self.runs[self.index][1] - self.done_in_run) if self.index < len(self.runs) else 0
 
     def estimate_s(self) -> float | None:
-        """Seconds left: mean measured step time x steps left (None before a step was measured)."""
+        """Seconds left in the current run: its mean measured step time x its steps left (None before one of its
+        steps was measured)."""
         if not self.measured:
             return None
         recent = self.measured[-50:]
@@ -68,13 +72,18 @@ class StepProgress:
         self.bar.update(1)
         if not self.announced and len(self.measured) >= self.announce_after:
             self.announced = True
-            self.bar.write(f"estimated run time: ~{_duration(left)} more for {self.steps_left()} steps "
-                           f"({1e3 * left / max(self.steps_left(), 1):.0f} ms/step)", file=self.stream)
+            name = self.runs[self.index][0]
+            later = ", ".join(f"{n} ({k} steps)" for n, k in self.runs[self.index + 1:])
+            then = f"; then {later}, estimated once it has started" if later else ""
+            self.bar.write(f"estimated run time of {name}: ~{_duration(left)} more for {self.steps_left()} steps "
+                           f"({1e3 * left / max(self.steps_left(), 1):.0f} ms/step){then}", file=self.stream)
 
     def next_run(self) -> None:
         self.close()
         self.index += 1
         self.done_in_run = 0
+        self.measured = []
+        self.announced = False
         self._open()
 
     def close(self) -> None:
