@@ -101,6 +101,8 @@ def _run_gs_family(op, law, method, tol, max_sweeps, r0, options, info):
     info.update(local_failures=out.local_failures, history=out.history, solve_s=out.solve_s)
     if out.newton is not None:
         info["newton"] = out.newton
+    if out.cluster is not None:
+        info["cluster"] = out.cluster
     if method == "auto" and not out.converged and out.sweeps < max_sweeps and np.isfinite(out.residual):
         fp_opts = {k: v for k, v in options.items() if k in ("anderson", "time_limit", "check_every", "scale")}
         fp = run_coulomb_fixed_point(op, tol=tol, max_sweeps=max_sweeps - out.sweeps, r0=out.r, **fp_opts)
@@ -250,7 +252,9 @@ def solve_coulomb(W, b, mu, method: str = "auto", tol: float = 1e-8, max_iter: i
 
     Same arguments as solve_socqp.  method: "gs" (accelerated Gauss-Seidel on the law itself; it can
     cycle on strongly coupled problems), "fixed_point" (SOCQPs with s = mu ||u_T||, coulomb_fixed_point.py),
-    "auto" (gs, switching to fixed_point if gs stalls for 200 sweeps)."""
+    "auto" (gs, switching to fixed_point if gs stalls for 200 sweeps).  gs option cluster=20 (the Coulomb law
+    only): from that sweep on, the contacts over tol and those on their strands are solved together by
+    Levenberg-Marquardt at the residual checks (cluster_newton.py; None = off), cluster_every=10."""
     return _solve_assembled(W, b, mu, "coulomb", method, tol, max_iter, r0, dict(options))
 
 

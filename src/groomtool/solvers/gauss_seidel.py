@@ -20,7 +20,9 @@ The sweep map r -> G(r) is Anderson-accelerated (anderson.py): after a few plain
 iterate mixes the last few (r, G(r)) pairs; the returned r is always a sweep's output.  On the hair
 problems this cuts the sweeps 3-4x (see docs/solvers.md).  On the assembled W (SOC law), subspace Newton
 steps on the faces the sweeps have identified (subspace_newton.py) are tried at the residual checks from
-sweep 20 on: another 3-6x fewer sweeps on the shared generator's problems (issue 22).
+sweep 20 on: another 3-6x fewer sweeps on the shared generator's problems (issue 22).  On the Coulomb law
+(either form), the contacts still over the tolerance and the contacts on their strands are solved together
+by Levenberg-Marquardt (cluster_newton.py) at the residual checks from sweep 20 on (issue 15).
 
 Deterministic (sequential, fixed order).  Stops when the residual of residual.py is <= tol, checked
 every few sweeps on the exact u = W r + b.
@@ -40,7 +42,8 @@ from . import residual as _res
 from .anderson import AndersonMixer
 from .anderson import norm as _anderson_norm
 from .blocks import UpperBlockDelassus, assemble_upper, upper_block_matvec
-from .cones import SOC, law_code
+from .cluster_newton import ClusterNewton
+from .cones import COULOMB, SOC, law_code
 from .subspace_newton import SubspaceNewton
 from .local import FAILED, LOCAL_TOL, NEWTON_MAX_ITER, normalize_block, solve_block
 
@@ -244,6 +247,61 @@ def packed_transpose_apply(ptr, cols, vals, r, n, out):
             out[cols[p]] += vals[p, 0] * d0 + vals[p, 1] * d1 + vals[p, 2] * d2
 
 
+@njit(cache=True)
+def dense_upper_block(indptr, indices, blocks, idx, pos, out):
+    """out (3k, 3k) = W[idx][:, idx] from W's upper block triangle; pos (m,) all -1 on entry (restored)."""
+    k = idx.shape[0]
+    for a in range(k):
+        pos[idx[a]] = a
+    for a in range(k):
+        i = idx[a]
+        for p in range(indptr[i], indptr[i + 1]):
+            c = pos[indices[p]]
+            if c < 0:
+                continue
+            for x in range(3):
+                for y in range(3):
+                    out[3 * a + x, 3 * c + y] = blocks[p, x, y]
+                    out[3 * c + y, 3 * a + x] = blocks[p, x, y]
+    for a in range(k):
+        pos[idx[a]] = -1
+
+
+@njit(cache=True)
+def dense_packed_block(h_ptr, h_cols, h_vals, g_ptr, g_cols, g_vals, idx, colpos, gamma2):
+    """W[idx][:, idx] = H_S (D H_S^T) + 2 gamma I from the packed panels of H and H D; colpos (n,) all -1
+    on entry (restored)."""
+    k = idx.shape[0]
+    nc = 0
+    for a in range(k):
+        i = idx[a]
+        for p in range(h_ptr[i], h_ptr[i + 1]):
+            if colpos[h_cols[p]] < 0:
+                colpos[h_cols[p]] = nc
+                nc += 1
+    Hs = np.zeros((3 * k, nc))
+    Gs = np.zeros((3 * k, nc))
+    for a in range(k):
+        i = idx[a]
+        for p in range(h_ptr[i], h_ptr[i + 1]):
+            c = colpos[h_cols[p]]
+            for x in range(3):
+                Hs[3 * a + x, c] = h_vals[p, x]
+        for p in range(g_ptr[i], g_ptr[i + 1]):
+            c = colpos[g_cols[p]]
+            if c >= 0:
+                for x in range(3):
+                    Gs[3 * a + x, c] = g_vals[p, x]
+    for a in range(k):
+        i = idx[a]
+        for p in range(h_ptr[i], h_ptr[i + 1]):
+            colpos[h_cols[p]] = -1
+    out = Hs @ Gs.T
+    for a in range(3 * k):
+        out[a, a] += gamma2
+    return out
+
+
 # ----------------------------------------------------------------------------------------------
 # operators: the two ways to evaluate u_i during a sweep
 # ----------------------------------------------------------------------------------------------
@@ -276,6 +334,8 @@ class AssembledOperator:
         self.s, self.An, self.Ainv, self.ok = normalize_diagonal(self.diag)
         self.rho = _res.rho_from_diagonal(self.diag)
         self.acc = np.zeros((m, 3))
+        self._pattern = None  # W's block pattern, both triangles (neighbours)
+        self._pos = None  # scratch of dense_block
 
     @classmethod
     def from_sparse(cls, W, b, mu, order: np.ndarray | None = None) -> "AssembledOperator":
@@ -338,6 +398,24 @@ class AssembledOperator:
         upper_block_matvec(self.W.indptr, self.W.indices, self.W.blocks, r, self.b, out)
         return out
 
+    def neighbours(self, idx: np.ndarray) -> np.ndarray:
+        """The contacts W couples to those of idx (internal order), idx included, sorted."""
+        if self._pattern is None:
+            m = self.W.n_contacts
+            rows = np.repeat(np.arange(m), np.diff(self.W.indptr))
+            A = sp.csr_matrix((np.ones(rows.size, dtype=np.int32), (rows, self.W.indices)), shape=(m, m))
+            self._pattern = sp.csr_matrix(A + A.T)
+        return np.union1d(idx, self._pattern[idx].indices).astype(np.int64)
+
+    def dense_block(self, idx: np.ndarray) -> np.ndarray:
+        """W[idx][:, idx] as a dense (3k, 3k) array (internal order)."""
+        if self._pos is None:
+            self._pos = np.full(self.W.n_contacts, -1, dtype=np.int64)
+        idx = np.ascontiguousarray(idx, dtype=np.int64)
+        out = np.zeros((3 * idx.size, 3 * idx.size))
+        dense_upper_block(self.W.indptr, self.W.indices, self.W.blocks, idx, self._pos, out)
+        return out
+
 
 class MatrixFreeOperator:
     """Gauss-Seidel keeping v = D H^T r, from the factored ContactProblem (H and H D packed per
@@ -358,6 +436,9 @@ class MatrixFreeOperator:
         self.rho = problem.rho()
         self.v = np.zeros(self.n)
         self._order_rev = None
+        self.dof_offsets = np.asarray(problem.dof_offsets, dtype=np.int64)
+        self._incidence = None
+        self._colpos = None
 
     @property
     def nbytes(self) -> int:
@@ -399,6 +480,29 @@ class MatrixFreeOperator:
         packed_apply(self.H.ptr, self.H.cols, self.H.vals, self.v, self.gamma2, r, self.b, out)
         return out
 
+    def neighbours(self, idx: np.ndarray) -> np.ndarray:
+        """The contacts on the strands those of idx touch (W couples them through D's strand blocks), idx
+        included, sorted."""
+        if self._incidence is None:
+            m = self.b.shape[0]
+            counts = np.diff(self.H.ptr)
+            strand = np.searchsorted(self.dof_offsets, self.H.cols, side="right") - 1
+            rows = np.repeat(np.arange(m), counts)
+            inc = sp.csr_matrix((np.ones(rows.size, dtype=np.int32), (rows, strand)),
+                                shape=(m, max(len(self.dof_offsets) - 1, 1)))
+            self._incidence = (inc, sp.csr_matrix(inc.T))
+        inc, inc_t = self._incidence
+        strands = np.unique(inc[idx].indices)
+        return np.union1d(idx, inc_t[strands].indices).astype(np.int64)
+
+    def dense_block(self, idx: np.ndarray) -> np.ndarray:
+        """W[idx][:, idx] as a dense (3k, 3k) array."""
+        if self._colpos is None:
+            self._colpos = np.full(self.n, -1, dtype=np.int64)
+        H, G = self.H, self.G
+        return dense_packed_block(H.ptr, H.cols, H.vals, G.ptr, G.cols, G.vals,
+                                  np.ascontiguousarray(idx, dtype=np.int64), self._colpos, self.gamma2)
+
 
 def contact_order(H: sp.spmatrix, how: str = "natural") -> np.ndarray | None:
     """Sweep order.  'natural': 0..m-1 (None).  'columns': by the largest dof each contact touches (for
@@ -435,10 +539,12 @@ class GSOutcome:
     projected_sweeps: float | None = None  # set when stopped by ``give_up``
     stopped_by_rule: bool = False  # the caller's ``stop`` accepted r (before the residual reached tol)
     newton: list | None = None  # subspace Newton steps: [(sweep, accepted, alpha, CG iterations, seconds)]
+    cluster: list | None = None  # Coulomb cluster steps: [(sweep, accepted, contacts, LM iterations, residual, seconds)]
 
 
 NEWTON_START = 20  #: first sweep after which a subspace Newton step is tried (SOC law, assembled W; issue 22)
 NEWTON_CG = (30, 200)  #: CG iterations per Newton step: while the classification changes / once a full step was taken
+CLUSTER_START = 20  #: first sweep after which a Coulomb cluster step is tried (cluster_newton.py; issue 15)
 GIVE_UP_MIN_SWEEPS = 400  #: sweeps before ``give_up`` may judge a run
 GIVE_UP_WINDOW = 0.2  #: ``give_up`` needs the projection over its limit at every check of this last fraction of the run
 
@@ -503,6 +609,8 @@ def run_gauss_seidel(
     newton: int | None = NEWTON_START,
     newton_every: int = 10,
     newton_cg=NEWTON_CG,
+    cluster: int | None = CLUSTER_START,
+    cluster_every: int = 10,
     callback=None,
     stop=None,
 ) -> GSOutcome:
@@ -534,6 +642,13 @@ def run_gauss_seidel(
     with a fresh Anderson history.  Next try after ``newton_every`` sweeps, doubled after every rejected step.
     SOC law, omega = 1 and the assembled form only (ignored otherwise).  On the shared generator's 30k problem
     (issue 22): 900 -> 160 sweeps to 1e-8, 9 s -> 3 s CPU.
+    cluster: the sweep from which Coulomb cluster steps are tried (cluster_newton.py; None: never; Coulomb law
+    only): at a residual check at or after it, the contacts over tol and every contact on their strands
+    (at most cluster_newton.CLUSTER_MAX) are solved together by Levenberg-Marquardt on their natural map, the
+    others held; the point is kept only if it lowers the global residual (then the sweeps go on from it, or
+    the run stops there if it is within tol).  Next try after ``cluster_every`` sweeps, doubled after every
+    step that did not lower the residual.  On the README example's sagging run, the 43 steps that ran out of
+    500 sweeps all had one loaded slipping contact near two strands' roots converging at 0.997 a sweep.
     callback(sweeps, residual): called at every residual check (progress bars).
     stop(r, u) -> bool: the caller's own stopping rule, asked at every residual check with the current r and
     u = W r + b (both (3m,), the caller's contact order); True ends the run (outcome.stopped_by_rule), e.g.
@@ -577,6 +692,13 @@ def run_gauss_seidel(
     if newton is not None and code == SOC and omega == 1.0 and isinstance(op, AssembledOperator):
         subspace = SubspaceNewton(op, cg_iter=newton_cg)
     next_newton = newton
+    clusters = None
+    if cluster is not None and code == COULOMB and hasattr(op, "dense_block"):
+        clusters = ClusterNewton(op)
+    next_cluster = cluster
+    cluster_gap = max(1, int(cluster_every))
+    cluster_log = [] if clusters is not None else None
+    stale = False  # v of a matrix-free operator no longer matches x (a cluster step was measured)
     newton_gap = max(1, int(newton_every))
     newton_log = [] if subspace is not None else None
     xf = x.reshape(-1)
@@ -597,7 +719,8 @@ def run_gauss_seidel(
         else:
             g = x  # plain Gauss-Seidel updates in place
             gf = g.reshape(-1)
-        fails += op.sweep(code, omega, g, continuing=g is x and sweeps > 0, atol=atol)
+        fails += op.sweep(code, omega, g, continuing=g is x and sweeps > 0 and not stale, atol=atol)
+        stale = False
         sweeps += 1
         if sym_on and sweeps < max_sweeps:  # the backward half: a sweep of its own in the count
             fails += op.sweep_back(code, omega, g, atol=atol)
@@ -628,6 +751,35 @@ def run_gauss_seidel(
                     stalled = True
                     gave_up_at = projected
                     break
+            if clusters is not None and sweeps >= next_cluster:
+                tn = time.perf_counter()
+                u_g = last_u[0]
+                cand = clusters.step(g, u_g, scale, tol)
+                res_c = math.nan
+                if cand is not None:
+                    res_c = measure(cand)
+                    stale = True
+                accepted = cand is not None and res_c < res
+                cluster_log.append((sweeps, accepted, clusters.last["size"], clusters.last["iterations"], res_c,
+                                    time.perf_counter() - tn))
+                if accepted or clusters.last["size"] == 0:  # no cluster (none or too large): try at the next check
+                    cluster_gap = max(1, int(cluster_every))
+                else:
+                    cluster_gap = min(2 * cluster_gap, 640)
+                next_cluster = sweeps + cluster_gap
+                if accepted:
+                    res = res_c
+                    history.append((sweeps, res, time.perf_counter() - t0))
+                    x[:] = cand
+                    if g is not x:
+                        g[:] = x
+                    if mixer is not None:
+                        mixer.reset()
+                        best_f = np.inf
+                    if res <= tol:
+                        break
+                    continue
+                last_u[0] = u_g
             if subspace is not None and sweeps >= next_newton:
                 tn = time.perf_counter()
                 step = subspace.step(g, last_u[0])
@@ -665,4 +817,4 @@ def run_gauss_seidel(
         history.append((sweeps, res, time.perf_counter() - t0))
     solve_s = time.perf_counter() - t0
     return GSOutcome(op.to_external(g), float(res), sweeps, bool(res <= tol), int(fails), history, solve_s, stalled,
-                     gave_up_at, by_rule, newton_log)
+                     gave_up_at, by_rule, newton_log, cluster_log)
