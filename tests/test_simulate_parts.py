@@ -273,6 +273,41 @@ def test_kept_contacts_at_rest_are_the_detections_own():
         assert np.allclose(getattr(again, name), getattr(first, name), rtol=0, atol=1e-12)
 
 
+def test_head_contacts_are_detected_again_only_for_the_strands_that_moved():
+    """Strand by strand head candidates (simulate_contacts module docstring): after one strand moved by more than
+    the skin, only its head contacts are detected again, and every strand's contacts are a fresh detection's."""
+    sphere = trimesh.creation.icosphere(subdivisions=4, radius=0.05)
+    n, top, lift = 6, 0.1, 0.05 + 3e-5
+    roots, frames = [], []
+    for a in np.linspace(0.0, 1.5 * np.pi, 4):  # four strands leaving the top of the sphere, 90 degrees apart
+        radial = np.array([np.sin(top) * np.cos(a), np.cos(top), np.sin(top) * np.sin(a)])
+        roots.append(lift * radial)
+        frames.append(frame([np.cos(top) * np.cos(a), -np.sin(top), np.cos(top) * np.sin(a)], radial))
+    curv = np.zeros((4, n, 3))
+    curv[:, :, 2] = -1.0 / lift  # bent along the sphere, 10-30 um above its facets
+    helix = sh.SuperHelix(np.array(roots), np.array(frames), np.full((4, n), 0.01), curv)
+    params = SimulationParams(dt=1 / 240, contacts="head", contact_radius=50e-6)
+    sim = Simulator(helix, helix.curvatures, Material(), GRAVITY, head=sphere, params=params)
+    tracker = sim.tracker
+    first = tracker.initial
+    assert set(first.strand_a.tolist()) == {0, 1, 2, 3} and np.all(first.strand_b < 0)
+    assert tracker.head_redetections == 4
+    moved_curv = curv.copy()
+    moved_curv[2, :, 2] -= 0.5  # strand 2 bends in: its tip moves by ~1 mm, far beyond the skin (50 um)
+    moved = sh.SuperHelix(helix.root_positions, helix.root_frames, helix.lengths, moved_curv)
+    zero = (np.zeros(4), np.zeros(4))
+    found = tracker.detect(moved, sh.kinematics(moved), 0.0, zero)
+    assert tracker.head_redetections == 5  # strand 2 only
+    fresh_sim = Simulator(moved, moved.curvatures, Material(), GRAVITY, head=sphere,
+                          params=SimulationParams(dt=1 / 240, contacts="head", contact_radius=50e-6, detection_skin=0.0))
+    fresh = fresh_sim.tracker.initial
+    assert found.strand_a.tolist() == fresh.strand_a.tolist()
+    for name in ("s_a", "distance", "point_a", "normal"):
+        assert np.allclose(getattr(found, name), getattr(fresh, name), rtol=0, atol=1e-9), name
+    again = tracker.detect(moved, sh.kinematics(moved), 0.0, zero)  # nothing moved since: kept for every strand
+    assert tracker.head_redetections == 5 and len(again) == len(found)
+
+
 # --------------------------------------------------------------------------- options
 def test_simulate_never_modifies_the_params_and_takes_dt_from_them():
     n = 4

@@ -188,7 +188,8 @@ def run_summary(result, helix0: sh.SuperHelix, stiffness_ratio=None, strands=Non
                    "worst_failed_residual": float(max(st.get("failed_residuals", []), default=0.0)),
                    "max_residual": float(max(st["solver_residuals"], default=0.0)),
                    "mean_iterations": float(np.mean(st["solver_iterations"])) if st["solver_iterations"] else 0.0},
-        "detection": {"passes": int(st.get("detection_passes", 0)), "reused": int(st.get("detection_reused", 0))},
+        "detection": {"passes": int(st.get("detection_passes", 0)), "reused": int(st.get("detection_reused", 0)),
+                      "head_redetections": int(st.get("head_redetections", 0))},
         "steps_at_rest": int(st.get("steps_at_rest", 0)),
         "timings_s": {k: float(v) for k, v in result.timings.items()},
     }

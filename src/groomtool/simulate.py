@@ -749,6 +749,7 @@ def simulate(helix: sh.SuperHelix, rest_curvatures, material: Material, gravity,
              "rate_limited_strand_steps": sim.clamped_strands,
              "detection_passes": tracker.passes if tracker is not None else 0,
              "detection_reused": tracker.reused if tracker is not None else 0,
+             "head_redetections": tracker.head_redetections if tracker is not None else 0,
              "steps_at_rest": sim.reused_steps,
              "model": "clothoid" if sim.clothoid else "superhelix",
              "velocity_terms": sim.velocity_terms}

@@ -21,6 +21,13 @@ Otherwise a new pass runs, with the skin unless the samples moved by more than d
 last pass (fast motion: the next step could not keep it either; same contacts, a cheaper pass).
 delta = 0 detects every step (the previous behaviour); at rest (an inverted groom) one pass serves
 the whole run.
+
+**Head contacts strand by strand.**  A strand's head contacts depend on that strand alone (the head is
+fixed in its frame), so their test is per strand: with D_s its largest sample displacement since its own
+last head pass and G_h,s the growth of its head margin, its candidates are kept while D_s + G_h,s <= delta;
+only the strands that fail it are detected again (with the skin unless they move by more than delta / 2 a
+step, from their margin).  A sagging groom whose tips swing re-detects those strands' head contacts, not
+the whole head's.  The strand/strand candidates keep the groom-wide test above.
 """
 
 from __future__ import annotations
@@ -211,13 +218,33 @@ def revisit(pts: np.ndarray, offsets: np.ndarray, arc: np.ndarray, candidates, h
 
 @dataclass
 class DetectionCache:
-    """The last detection pass: its samples (V, 3) in the head's frame, the margins and skin it used and
-    its candidates (in the head's frame)."""
+    """The last strand/strand detection pass: its samples (V, 3) in the head's frame, the margins and skin it
+    used and its candidates (in the head's frame)."""
 
     samples: np.ndarray
     margins: tuple  # (head, strand) margins per strand (S,) each
     candidates: object
     skin: float = 0.0
+
+
+@dataclass
+class HeadCache:
+    """Each strand's last head pass: the samples (V, 3, in the head's frame; a strand's rows from its own
+    pass), the head margin (S,) and skin (S,) it used, and the candidates of all strands (ordered by strand)."""
+
+    samples: np.ndarray
+    margin: np.ndarray
+    skin: np.ndarray
+    candidates: object
+
+
+def strand_rows(offsets: np.ndarray, strands: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The sample rows of ``strands`` (in order) and the offsets of the sub-array they form."""
+    counts = offsets[strands + 1] - offsets[strands]
+    sub = np.zeros(len(strands) + 1, dtype=np.int64)
+    np.cumsum(counts, out=sub[1:])
+    rows = np.repeat(offsets[strands] - sub[:-1], counts) + np.arange(int(sub[-1]))
+    return rows, sub
 
 
 # --------------------------------------------------------------------------- the tracker
@@ -242,9 +269,11 @@ class ContactTracker:
         self.warm_start = warm_start
         self.previous = None  # (contacts, impulses) of the last step
         self.initial = None
-        self.cache: DetectionCache | None = None
-        self.passes = 0  # detection passes run
-        self.reused = 0  # steps served by the kept candidates
+        self.cache: DetectionCache | None = None  # strand/strand candidates
+        self.head_cache: HeadCache | None = None  # strand/head candidates, strand by strand
+        self.passes = 0  # steps that ran a detection pass (strand/strand, or head for some strands)
+        self.reused = 0  # steps served by the kept candidates alone
+        self.head_redetections = 0  # strand-steps whose head contacts were detected again
 
     # ---------------------------------------------------------------- margins
     def margins(self, speeds) -> tuple[np.ndarray, np.ndarray]:
@@ -267,56 +296,95 @@ class ContactTracker:
             pts = (pts - T) @ R  # R^T (x - T): the head's rest frame
         return pts, offsets, arc, transform
 
-    def _pass(self, pts, offsets, arc, margins, skin: float):
-        """Detection on the samples (head's frame) with the thresholds grown by ``skin``."""
-        from .contact import Contacts, detect_head_contacts, detect_strand_contacts
+    def _strand_pairs(self, pts, offsets, arc, margins) -> tuple[object, bool]:
+        """Strand/strand contacts on the samples (head's frame): the kept candidates revisited while the
+        groom-wide test holds (module docstring), else a pass with the thresholds grown by the skin.
+        Returns (contacts, whether a pass ran)."""
+        from .contact import detect_strand_contacts
 
+        c = self.cache
+        moved = None
+        if c is not None and c.samples.shape == pts.shape:
+            moved = float(np.sqrt(np.max(np.sum((pts - c.samples) ** 2, axis=1), initial=0.0)))
+            grow = max(0.0, float(np.max(margins[1] - c.margins[1], initial=0.0)))
+            if c.skin > 0.0 and moved + grow <= 0.5 * c.skin:
+                return revisit(pts, offsets, arc, c.candidates, self.head_surface), False
+        # strands that moved by more than half the skin since the last pass would not keep the next one
+        # either: detect without the skin (same contacts, a cheaper pass)
+        skin = self.skin if moved is None or moved <= 0.5 * self.skin else 0.0
         r_s = self.radius + margins[1]  # per strand
-        r_h = self.radius + margins[0]
-        s_max, h_max = float(np.max(r_s, initial=self.radius)), float(np.max(r_h, initial=self.radius))
-        parts = []
-        if self.params.contacts == "all":
-            parts.append(detect_strand_contacts(pts, offsets, arc, r_s + 0.5 * skin, min_self_arc=np.pi * s_max,
-                                                merge_arc=4.0 * s_max))
-        if self.head_surface is not None:
-            parts.append(detect_head_contacts(pts, offsets, arc, self.head_surface, r_h + skin,
-                                              min_root_arc=np.pi * h_max, merge_arc=4.0 * h_max))
-        for part in parts:
-            part.radius = s_max
-        out = Contacts.concatenate(parts)
-        self.passes += 1
-        return out
+        s_max = float(np.max(r_s, initial=self.radius))
+        found = detect_strand_contacts(pts, offsets, arc, r_s + 0.5 * skin, min_self_arc=np.pi * s_max,
+                                       merge_arc=4.0 * s_max)
+        self.cache = DetectionCache(pts, margins, found, skin)
+        return found, True
 
-    def _moved(self, pts) -> float | None:
-        """Largest displacement of a sample since the last pass (None: no pass to compare with)."""
-        c = self.cache
+    def _head(self, pts, offsets, arc, margins) -> tuple[object, bool]:
+        """Strand/head contacts on the samples (head's frame), strand by strand: the kept candidates of the
+        strands that pass their own test (module docstring) revisited, the others' detected again.  Returns
+        (contacts ordered by strand, whether any strand was detected)."""
+        from .contact import Contacts, detect_head_contacts
+
+        S = len(offsets) - 1
+        c = self.head_cache
+        head_margin = np.broadcast_to(np.asarray(margins[0], dtype=np.float64), (S,))
         if c is None or c.samples.shape != pts.shape:
-            return None
-        return float(np.sqrt(np.max(np.sum((pts - c.samples) ** 2, axis=1), initial=0.0)))
-
-    def _can_reuse(self, moved, margins) -> bool:
-        c = self.cache
-        if moved is None or c.skin <= 0.0:
-            return False
-        grow_h = max(0.0, float(np.max(margins[0] - c.margins[0], initial=0.0)))
-        grow_s = max(0.0, float(np.max(margins[1] - c.margins[1], initial=0.0)))
-        return moved + grow_s <= 0.5 * c.skin and moved + grow_h <= c.skin
+            c = self.head_cache = HeadCache(pts.copy(), np.zeros(S), np.zeros(S), None)
+            stale = np.ones(S, dtype=bool)
+        else:
+            moved = np.maximum.reduceat(np.sqrt(np.sum((pts - c.samples) ** 2, axis=1)), offsets[:-1])
+            stale = ~(moved + np.maximum(head_margin - c.margin, 0.0) <= c.skin) | (c.skin <= 0.0)
+        kept = None
+        if c.candidates is not None and len(c.candidates.strand_a):
+            old = c.candidates.subset(~stale[c.candidates.strand_a])
+            if len(old.strand_a):
+                kept = revisit(pts, offsets, arc, old, self.head_surface)
+        redo = np.flatnonzero(stale)
+        if len(redo) == 0:
+            return kept, False
+        # a strand moving by more than half the skin a step (its margin, 1.5 h |v|) could not keep its
+        # candidates the next step either: detected without the skin (the same contacts, a cheaper pass)
+        skin = np.where(head_margin[redo] <= 0.5 * self.skin, self.skin, 0.0)
+        r_h = self.radius + head_margin
+        h_max = float(np.max(r_h, initial=self.radius))
+        rows, sub = strand_rows(offsets, redo)
+        found = detect_head_contacts(pts[rows], sub, arc[rows], self.head_surface, r_h[redo] + skin,
+                                     min_root_arc=np.pi * h_max, merge_arc=4.0 * h_max)
+        found.strand_a = redo[found.strand_a]
+        c.samples[rows] = pts[rows]
+        c.margin[redo] = head_margin[redo]
+        c.skin[redo] = skin
+        self.head_redetections += len(redo)
+        keep_old = (c.candidates.subset(~stale[c.candidates.strand_a])
+                    if c.candidates is not None and len(c.candidates.strand_a) else None)
+        found.radius = None
+        merged = Contacts.concatenate([x for x in (keep_old, found) if x is not None])
+        c.candidates = merged.subset(np.argsort(merged.strand_a, kind="stable"))
+        fresh = found if kept is None else Contacts.concatenate([kept, found])
+        return fresh.subset(np.argsort(fresh.strand_a, kind="stable")), True
 
     def detect(self, helix: sh.SuperHelix, kin, t: float, margins: tuple[float, float]):
         """Contacts within the thresholds at ``margins`` on the current geometry (world frame)."""
         from .contact import Contacts
 
         pts, offsets, arc, transform = self._samples(helix, kin, t)
-        moved = self._moved(pts)
-        if self._can_reuse(moved, margins):
-            found = revisit(pts, offsets, arc, self.cache.candidates, self.head_surface)
-            self.reused += 1
+        parts, ran = [], False
+        if self.params.contacts == "all":
+            part, did = self._strand_pairs(pts, offsets, arc, margins)
+            parts.append(part)
+            ran |= did
+        if self.head_surface is not None:
+            part, did = self._head(pts, offsets, arc, margins)
+            if part is not None:
+                parts.append(part)
+            ran |= did
+        if ran:
+            self.passes += 1
         else:
-            # strands that moved by more than half the skin since the last pass would not keep the
-            # next one either: detect without the skin (same contacts, a cheaper pass)
-            skin = self.skin if moved is None or moved <= 0.5 * self.skin else 0.0
-            found = self._pass(pts, offsets, arc, margins, skin)
-            self.cache = DetectionCache(pts, margins, found, skin)
+            self.reused += 1
+        for part in parts:
+            part.radius = None
+        found = Contacts.concatenate(parts)
         if transform is not None and len(found.strand_a):
             R, T = transform
             found = Contacts(found.strand_a, found.s_a, found.strand_b, found.s_b, found.point_a @ R.T + T,
