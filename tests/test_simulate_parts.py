@@ -241,6 +241,39 @@ def test_contact_problem_on_the_moved_dofs_is_the_full_delassus():
     assert system.problem.H.shape[1] < system.H.shape[1]  # some dofs were left out
 
 
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_moved_dofs_restricts_H_to_each_strands_leading_dofs_and_drops_immovable_contacts(seed):
+    """simulate_linalg.moved_dofs against a dense reference: rows of contacts whose H rows all vanish dropped, strand
+    s's columns cut to its largest touched dof + 1 and packed one strand after the other."""
+    import scipy.sparse as sp
+
+    from groomtool.simulate_linalg import moved_dofs
+
+    rng = np.random.default_rng(seed)
+    sizes = 3 * rng.integers(1, 6, size=5)
+    offsets = np.concatenate([[0], np.cumsum(sizes)])
+    m = 12
+    dense = np.zeros((3 * m, offsets[-1]))
+    for i in range(m):
+        if i % 5 == 3:
+            continue  # an immovable contact: no entry
+        for strand in rng.choice(5, size=rng.integers(1, 3), replace=False):
+            upto = rng.integers(1, sizes[strand] + 1)  # a contact moves a strand's leading dofs
+            dense[3 * i:3 * i + 3, offsets[strand]:offsets[strand] + upto] = rng.normal(size=(3, upto))
+    dense[3 * 7:3 * 7 + 3] *= 1e-12  # below 1e-9 of the largest: dropped too
+    keep, H, k, H_moved = moved_dofs(sp.csr_matrix(dense), offsets)
+    want_keep = np.array([np.abs(dense[3 * i:3 * i + 3]).max() > 1e-9 * np.abs(dense).max() for i in range(m)])
+    assert keep.tolist() == want_keep.tolist() and not keep[3] and not keep[7]
+    rows = dense[np.repeat(keep, 3)]
+    assert np.array_equal(H.toarray(), rows)
+    want_k = [int(np.max(np.flatnonzero(np.any(rows[:, a:b] != 0, axis=0)), initial=-1)) + 1
+              for a, b in zip(offsets[:-1], offsets[1:])]
+    assert k.tolist() == want_k
+    want = np.hstack([rows[:, a:a + kk] for a, kk in zip(offsets[:-1], want_k)])
+    assert np.array_equal(H_moved.toarray(), want)
+    assert moved_dofs(sp.csr_matrix(np.zeros((6, offsets[-1]))), offsets) is None
+
+
 def test_kept_contacts_match_a_fresh_detection_and_save_passes():
     helix, sphere = crossing_strands()
     params = SimulationParams(dt=1 / 240, contacts="all", contact_radius=50e-6)

@@ -52,7 +52,6 @@ from dataclasses import dataclass, field, replace
 from typing import Callable
 
 import numpy as np
-import scipy.sparse as sp
 from threadpoolctl import threadpool_limits
 
 from .deprecation import rename_field
@@ -62,7 +61,7 @@ from .rods import dynamics as dyn
 from .rods import superhelix as sh
 from .simulate_contacts import (ContactTracker, contact_gaps, match_contacts,  # noqa: F401 (re-exported)
                                 normal_velocity_targets)
-from .simulate_linalg import StepCorrections, StrandFactors, factor_step_matrix, strand_chunks
+from .simulate_linalg import StepCorrections, StrandFactors, factor_step_matrix, moved_dofs, strand_chunks
 from .simulate_motion import HeadMotion
 from .simulate_motion import rigid_motion as _rigid_motion  # noqa: F401 (re-exported)
 
@@ -523,36 +522,20 @@ class Simulator:
         from .solvers import ContactProblem
 
         helix = system.helix
-        H = system.H
-        # a contact that no dof can move (at the clamped root) transmits nothing: drop it
-        squares = sp.csr_matrix((H.data * H.data, H.indices, H.indptr), shape=H.shape)
-        row_norm = np.sqrt(squares @ np.ones(H.shape[1])).reshape(-1, 3).max(axis=1)
-        keep = row_norm > 1e-9 * float(np.max(row_norm, initial=0.0))
-        if not np.any(keep):
+        # a contact that no dof can move (at the clamped root) transmits nothing: dropped; the problem on the dofs
+        # the contacts move: strand s's first k_s (a contact on element e moves the dofs of elements 0..e only),
+        # with D_s = (Mhat_s^-1)[:k_s, :k_s] (StrandFactors.leading_inverse)
+        moved = moved_dofs(system.H, 3 * helix.flat_offsets())
+        if moved is None:
             return
+        keep, H, k, H_moved = moved
         if not np.all(keep):
             system.contacts = system.contacts.subset(keep)
-            H = system.H = H[np.repeat(keep, 3)]
+            system.H = H
             w = w.reshape(-1, 3)[keep].ravel()
         system.w = w
         b = H @ helix.to_flat(system.v_free).ravel() + w
-        # the problem on the dofs the contacts move: strand s's first k_s (a contact on element e moves the
-        # dofs of elements 0..e only), with D_s = (Mhat_s^-1)[:k_s, :k_s] (StrandFactors.leading_inverse)
-        offsets = 3 * helix.flat_offsets()
-        strand_of = np.repeat(np.arange(helix.n_strands), np.diff(offsets))[H.indices]  # a gather, not a search
-        local = H.indices - offsets[strand_of]
-        k = np.zeros(helix.n_strands, dtype=np.int64)
-        # per strand the largest local dof + 1, from the last entry of each row's run on a strand (a row's
-        # indices are sorted, a strand's dofs contiguous)
-        end = np.diff(strand_of, append=-1) != 0
-        end[H.indptr[1:][H.indptr[1:] > H.indptr[:-1]] - 1] = True
-        last = np.flatnonzero(end)
-        np.maximum.at(k, strand_of[last], local[last] + 1)
         touched = np.flatnonzero(k > 0)
-        new_offsets = np.zeros(helix.n_strands, dtype=np.int64)
-        new_offsets[touched] = np.concatenate([[0], np.cumsum(k[touched])[:-1]])
-        H_moved = sp.csr_matrix((H.data, new_offsets[strand_of] + local, H.indptr),
-                                shape=(H.shape[0], int(k.sum())))
         blocks = [system.factors.leading_inverse(s, int(k[s])) for s in touched]
         g = float(np.linalg.norm(self.gravity))
         r_scale = self.inertia.linear * float(np.mean(helix.strand_lengths)) * max(g * self.params.dt, 1e-3)

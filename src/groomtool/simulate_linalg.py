@@ -10,6 +10,7 @@ multi-threaded BLAS is slow on 100 x 100 systems on a busy machine: the simulato
 from __future__ import annotations
 
 import numpy as np
+import scipy.sparse as sp
 from numba import njit
 from scipy.linalg import lapack
 
@@ -319,3 +320,111 @@ def cho_inverse(L: np.ndarray, n: int) -> np.ndarray:
     out = inv + inv.T  # dpotri wrote the lower triangle; the upper one is L's zeros
     out.flat[:: n + 1] *= 0.5
     return out
+
+
+# --------------------------------------------------------------------------- H on the dofs the contacts move
+@njit(cache=True)
+def _contact_row_norms(indptr, data):
+    """Per contact (3 rows) the largest row norm of H."""
+    m = (indptr.shape[0] - 1) // 3
+    out = np.zeros(m)
+    for i in range(m):
+        best = 0.0
+        for r in range(3 * i, 3 * i + 3):
+            acc = 0.0
+            for p in range(indptr[r], indptr[r + 1]):
+                acc += data[p] * data[p]
+            best = max(best, acc)
+        out[i] = np.sqrt(best)
+    return out
+
+
+@njit(cache=True)
+def _moved_dofs_kernel(indptr, indices, data, keep, dof_strand, strand_start, n_strands):
+    """H restricted to the kept contacts' rows (indptr, indices, data) and the per-strand count k_s of leading
+    dofs any kept entry touches (largest local dof + 1)."""
+    m = keep.shape[0]
+    k = np.zeros(n_strands, np.int64)
+    new_ptr = np.zeros(3 * int(keep.sum()) + 1, np.int64)
+    r_out = 0
+    for i in range(m):
+        if not keep[i]:
+            continue
+        for r in range(3 * i, 3 * i + 3):
+            new_ptr[r_out + 1] = new_ptr[r_out] + indptr[r + 1] - indptr[r]
+            for p in range(indptr[r], indptr[r + 1]):
+                c = indices[p]
+                s = dof_strand[c]
+                loc = c - strand_start[s] + 1
+                if loc > k[s]:
+                    k[s] = loc
+            r_out += 1
+    nnz = new_ptr[r_out]
+    new_idx = np.empty(nnz, indices.dtype)
+    new_data = np.empty(nnz)
+    q = 0
+    for i in range(m):
+        if not keep[i]:
+            continue
+        for r in range(3 * i, 3 * i + 3):
+            for p in range(indptr[r], indptr[r + 1]):
+                new_idx[q] = indices[p]
+                new_data[q] = data[p]
+                q += 1
+    return new_ptr, new_idx, new_data, k
+
+
+@njit(cache=True)
+def _shift_columns(indices, dof_strand, strand_start, new_start):
+    """Column c of strand s -> new_start[s] + (c - strand_start[s])."""
+    out = np.empty(indices.shape[0], np.int64)
+    for p in range(indices.shape[0]):
+        c = indices[p]
+        s = dof_strand[c]
+        out[p] = new_start[s] + c - strand_start[s]
+    return out
+
+
+def moved_dofs(H, dof_offsets: np.ndarray, min_relative_norm: float = 1e-9):
+    """The contact Jacobian on the dofs the contacts move (Simulator._build_problem): a contact on element e
+    moves the dofs of elements 0..e of its strands only, so strand s needs its first k_s dofs.
+
+    H: (3m, n) CSR with sorted indices, strand s owning columns dof_offsets[s]:dof_offsets[s + 1].  Contacts whose
+    rows are all below ``min_relative_norm`` of the largest (no dof moves them: at a clamped root) are dropped.
+    Returns (keep (m,) bool, H on the kept rows (3m', n), k (S,), H_moved (3m', sum k) with strand s's columns
+    at sum_{t<s} k_t), or None when no contact is kept.  O(nnz) compiled passes (no temporaries of nnz size
+    besides the outputs)."""
+    H = sp.csr_matrix(H)
+    indptr = np.ascontiguousarray(H.indptr, dtype=np.int64)
+    norms = _contact_row_norms(indptr, H.data)
+    keep = norms > min_relative_norm * float(np.max(norms, initial=0.0))
+    if not np.any(keep):
+        return None
+    dof_offsets = np.asarray(dof_offsets, dtype=np.int64)
+    S = len(dof_offsets) - 1
+    dof_strand = np.repeat(np.arange(S, dtype=np.int64), np.diff(dof_offsets))
+    if np.all(keep):
+        ptr, idx, data = indptr, np.ascontiguousarray(H.indices), H.data
+        k = _max_local_dofs(indptr, idx, dof_strand, dof_offsets, S)
+        H_kept = H
+    else:
+        ptr, idx, data, k = _moved_dofs_kernel(indptr, H.indices, H.data, keep, dof_strand, dof_offsets, S)
+        H_kept = sp.csr_matrix((data, idx, ptr), shape=(len(ptr) - 1, H.shape[1]))
+    new_start = np.zeros(S, dtype=np.int64)
+    np.cumsum(k[:-1], out=new_start[1:])
+    H_moved = sp.csr_matrix((data, _shift_columns(idx, dof_strand, dof_offsets, new_start), ptr),
+                            shape=(len(ptr) - 1, int(k.sum())))
+    return keep, H_kept, k, H_moved
+
+
+@njit(cache=True)
+def _max_local_dofs(indptr, indices, dof_strand, strand_start, n_strands):
+    """Per strand the largest local column + 1 over all entries."""
+    k = np.zeros(n_strands, np.int64)
+    for p in range(indices.shape[0]):
+        c = indices[p]
+        s = dof_strand[c]
+        loc = c - strand_start[s] + 1
+        if loc > k[s]:
+            k[s] = loc
+    return k
