@@ -320,20 +320,38 @@ def cone_violation(forces: np.ndarray, mu: np.ndarray) -> float:
     return float(np.max(np.maximum(0.0, np.linalg.norm(f[:, 1:], axis=1) - mu * f[:, 0])))
 
 
-def rest_curvature_error_bound(problem: InverseProblem, cp, r, u=None, line_search: bool = True) -> dict:
+def rest_curvature_error_bound(problem: InverseProblem, cp, r, u=None, line_search: bool = True,
+                               strands=None) -> dict:
     """Certified bound on how far the rest curvatures of forces r (solver units, (3m,), in their cones) are
     from those of the optimum r*:  |q0 - q0*| = f_scale |K^-1 H^T (r - r*)| = f_scale sqrt(w_scale) |A^T (r - r*)|
-    <= f_scale sqrt(w_scale) sqrt(duality gap)  (solvers/certificate.py).  Returns {"q0_error_bound": relative
-    to |q0*| (>= |q0| - the bound; inf when that is not positive), "q0_error_bound_abs": 1/m, l2 over all dofs,
-    "q0_norm": |q0|}.  ``cp``: problem.contact_problem(helix); ``u``: W r + b when already known."""
-    from .solvers.certificate import error_bound  # kept off the CLI's start
+    (A = H D^1/2, D = K^-2 / w_scale) <= f_scale sqrt(w_scale) B  (solvers/certificate.py), with B the smaller of
+
+      * "forces":  B = sqrt(G(r, l = A^T r)) (+ the line search of error_bound, diagonal D), G the duality gap;
+      * "strands" (with ``strands`` = h (n,), e.g. the strand-split ADMM's sum_e J_e^T x_e):
+        B = (delta + sqrt(4 G(r, l) - delta^2)) / 2 at l = D^1/2 h, delta = |A^T r - l|
+        (certificate.error_bound_with_strands; any D, through D_apply).
+
+    Both are upper bounds on the same |A^T (r - r*)| for the same r: g(l) <= f* for every dual point l (weak
+    duality), f(r) - f* >= |A^T (r - r*)|^2 / 2 and f* - g(l) >= |l - A^T r*|^2 / 2, so G(r, l) = f(r) - g(l)
+    bounds |A^T (r - r*)| through the formula above at ANY l; the minimum of two valid bounds is one.  The
+    relative bound below is increasing in the absolute one, so it is the smaller one too.
+    Returns {"q0_error_bound": relative to |q0*| (>= |q0| - the bound; inf when that is not positive),
+    "q0_error_bound_abs": 1/m, l2 over all dofs, "q0_norm": |q0|, "q0_bound_source": "forces" | "strands"}.
+    ``cp``: problem.contact_problem(helix); ``u``: W r + b when already known."""
+    from .solvers.certificate import error_bound, error_bound_with_strands  # kept off the CLI's start
 
     e = error_bound(cp, r, u, line_search=line_search)
-    absolute = problem.f_scale * math.sqrt(problem.w_scale) * e["bound"]
+    best, source = e["bound"], "forces"
+    if strands is not None:
+        e2 = error_bound_with_strands(cp, r, strands, HTr=e["HTr"])
+        if e2["bound"] < best:
+            best, source = e2["bound"], "strands"
+    absolute = problem.f_scale * math.sqrt(problem.w_scale) * best
     q0 = problem.q0_free - problem.apply_inverse_stiffness(problem.f_scale * e["HTr"])
     q0_norm = float(np.linalg.norm(q0))
     rel = absolute / (q0_norm - absolute) if q0_norm > absolute else math.inf
-    return {"q0_error_bound": float(rel), "q0_error_bound_abs": float(absolute), "q0_norm": q0_norm}
+    return {"q0_error_bound": float(rel), "q0_error_bound_abs": float(absolute), "q0_norm": q0_norm,
+            "q0_bound_source": source}
 
 
 def solve_inverse_problem(problem: InverseProblem, helix: sh.SuperHelix, params, quiet: bool = True,
@@ -359,6 +377,7 @@ def solve_inverse_problem(problem: InverseProblem, helix: sh.SuperHelix, params,
     bounded = problem.gamma > 0 and problem.q0_free is not None
     gave_up = {}  # ADMM: the projection of its q0 bound that stopped it (give_up_projection on the bound's history)
     admm_state = {}  # ADMM: its end state ("state"), for a later solve's initial_state
+    last_strands = {}  # ADMM: the last strand solves' h = sum_e J_e^T x_e its stop rule saw (a dual point)
 
     def run(method):
         with progress(params.max_sweeps, f"contact solve ({method}, {m:,} contacts)", quiet,
@@ -385,8 +404,11 @@ def solve_inverse_problem(problem: InverseProblem, helix: sh.SuperHelix, params,
                 shown["sweeps"] = sweeps
                 postfix()
 
-            def stop(r, u):  # the certified rest-curvature error: shown, and a stopping rule with q0_tolerance
-                shown["q0"] = rest_curvature_error_bound(problem, cp, r, u, line_search=False)["q0_error_bound"]
+            def stop(r, u, strands=None):  # the certified rest-curvature error: shown, and a stop rule (q0_tolerance)
+                if strands is not None:  # ADMM's strand solves h: a second dual point (rest_curvature_error_bound)
+                    last_strands["h"] = strands
+                shown["q0"] = rest_curvature_error_bound(problem, cp, r, u, line_search=False,
+                                                         strands=strands)["q0_error_bound"]
                 if math.isfinite(shown["q0"]):
                     shown["history"].append((shown["sweeps"], shown["q0"]))
                 postfix()
@@ -410,6 +432,7 @@ def solve_inverse_problem(problem: InverseProblem, helix: sh.SuperHelix, params,
             if method != "clarabel" and initial_forces is not None:
                 gs_only["r0"] = np.asarray(initial_forces, dtype=np.float64).reshape(-1) / problem.f_scale
             if method == "admm":
+                gs_only["stop_strands"] = True
                 gs_only["state_out"] = admm_state
                 if initial_state is not None:
                     gs_only["initial_state"] = initial_state
@@ -446,9 +469,12 @@ def solve_inverse_problem(problem: InverseProblem, helix: sh.SuperHelix, params,
     if converged:
         out["stopped_on"] = "residual" if res.converged else "q0_tolerance"
     if feasible and bounded:
-        bound = rest_curvature_error_bound(problem, cp, r)
+        # ADMM: also from its last strand solves (any dual point certifies r, even one a few iterations old)
+        bound = rest_curvature_error_bound(problem, cp, r, strands=last_strands.get("h") if res.method == "admm"
+                                           else None)
         out["q0_error_bound"] = bound["q0_error_bound"]
         out["q0_error_bound_abs"] = bound["q0_error_bound_abs"]
+        out["q0_bound_source"] = bound["q0_bound_source"]
     else:
         out["q0_error_bound"] = None
         out["q0_error_bound_note"] = ("no bound: gamma = 0 (the dual is not strongly concave)" if feasible

@@ -21,8 +21,12 @@ what is left is the consensus between the two strands of each contact.  One iter
 products with H (per end: its panel of packed H) and one triangular solve pair per strand: ~ a Gauss-Seidel sweep.
 
 s is always in the cones (an exact equilibrium in the inversion), so the caller's ``stop`` rule (certificate.py's
-bound) can certify it at any check.  Measured on example_groom(1000) with all contacts (67,805): the certified
-rest-curvature bound 1e-3 where Gauss-Seidel stalls (docs/solvers.md section 12).  SOC law only.
+bound) can certify it at any check.  With ``stop_strands`` the rule also gets the strand solves'
+h = sum_e J_e^T x_e: l = D^1/2 h is a dual point whose gap is about the strands' disagreement
+1/2 |D^1/2 (H^T s - h)|^2, without the 1 / (4 gamma) that the dual point A^T s puts on the velocity mismatch of s
+(certificate.error_bound_with_strands).  Measured on example_groom(1000) with all contacts (67,805): the certified
+rest-curvature bound 1e-3 where Gauss-Seidel stalls, after 290 iterations with the strand certificate (840 with
+A^T s alone; docs/solvers.md section 12).  SOC law only.
 """
 
 from __future__ import annotations
@@ -227,6 +231,19 @@ def _strand_velocity(strand_ptr, ends_sorted, end_p0, end_p1, cols, vals, dof_of
             out[e, 0], out[e, 1], out[e, 2] = _end_times(e, o, end_p0, end_p1, cols, vals, t2)
 
 
+@njit(cache=True, fastmath=_FM)
+def _strand_sum(end_p0, end_p1, cols, vals, x, out):
+    """out = sum_e J_e^T x_e over all ends (out: (n,), zeroed here): each strand's H^T of its own force copies."""
+    for k in range(out.shape[0]):
+        out[k] = 0.0
+    for e in range(end_p0.shape[0]):
+        x0 = x[e, 0]
+        x1 = x[e, 1]
+        x2 = x[e, 2]
+        for p in range(end_p0[e], end_p1[e]):
+            out[cols[p]] += vals[p, 0] * x0 + vals[p, 1] * x1 + vals[p, 2] * x2
+
+
 class StrandSplit:
     """The ends of a ContactProblem's contacts and the Cholesky factors of M_s = D_s^-1 + J_s^T J_s / rho, for a
     per-contact rho (fixed for the whole run)."""
@@ -284,6 +301,13 @@ class StrandSplit:
         _x_step(self.strand_ptr, self.ends_sorted, self.end_p0, self.end_p1, H.cols, H.vals, self.rho_end, self.off,
                 self.L_ptr, self.L, w, x, self.t)
 
+    def strand_sum(self, x) -> np.ndarray:
+        """h = sum_e J_e^T x_e (n,) for copies x (E, 3) of the forces per end: with x_e = r_i(e) it is H^T r; with
+        ADMM's strand solves, the dual point l = D^1/2 h of certificate.error_bound_with_strands."""
+        out = np.empty(self.problem.n_dofs)
+        _strand_sum(self.end_p0, self.end_p1, self.H.cols, self.H.vals, np.ascontiguousarray(x), out)
+        return out
+
     def strand_velocity(self, x):
         p, H = self.problem, self.H
         out = np.empty_like(x)
@@ -325,8 +349,10 @@ class ADMMState:
     y_e, at the same forces, scales with D_s.  So the new run starts from
     z_e = s_i + (z_e - s_i) g_s rho_i / rho'_i, g_s = tr(D'_s) / tr(D_s) (exact for D'_s = g_s D_s, as a stiffness
     factor gives: K^-2 / w_scale), rho' the new problem's own rho (its factors are new anyway).  For a converged
-    state that is the start the forces alone give; measured on example_groom(1000)'s stiffening re-solves, the
-    unconverged state saves no iterations either (docs/solvers.md section 12)."""
+    state that is the start the forces alone give.  Measured on example_groom(1000)'s stiffening re-solves: with the
+    primal certificate (runs stopped late, nearly converged) no gain; since the inversion stops on the strand
+    certificate (runs stopped early, at the q0 tolerance) the later re-solves take 10-60 iterations from the state
+    against 90-110 from the forces (docs/solvers.md section 12)."""
 
     z: np.ndarray  # (E, 3) the Douglas-Rachford variable per end
     s: np.ndarray  # (m, 3) the forces (in the cones) of the last iteration
@@ -383,6 +409,7 @@ def run_admm(
     time_limit: float | None = None,
     callback=None,
     stop=None,
+    stop_strands: bool = False,
     initial_state: ADMMState | None = None,
     state_out: dict | None = None,
 ) -> ADMMOutcome:
@@ -390,6 +417,9 @@ def run_admm(
     cones) or, without one, from ``warm_sweeps`` Gauss-Seidel sweeps.  Every ``check_every`` iterations: the
     residual of residual.py on s (stop at tol), callback(iterations, residual), stop(r, u) -> bool (the caller's
     rule, e.g. the certified rest-curvature bound: True ends the run, outcome.stopped_by_rule), time_limit.
+    ``stop_strands``: call stop(r, u, h) instead, h = sum_e J_e^T x_e (n,) from the last x-step
+    (StrandSplit.strand_sum), the dual point of certificate.error_bound_with_strands (a certificate from ADMM's
+    strand solves that needs no 1 / gamma on the velocity mismatch of s; docs/solvers.md section 12).
     ``initial_state``: a previous run's outcome.state (ADMMState) on a problem with the same H (another D and b):
     the run starts from it (r0 and the Gauss-Seidel sweeps are then not used; a state of other contacts is
     ignored).  ``state_out`` (a dict): gets the end state under "state" (for callers that reach run_admm through
@@ -471,7 +501,8 @@ def run_admm(
                 callback(k, res)
             if res <= tol or not math.isfinite(res):
                 break
-            if stop is not None and stop(s.reshape(-1).copy(), u):
+            if stop is not None and (stop(s.reshape(-1).copy(), u, split.strand_sum(x)) if stop_strands
+                                     else stop(s.reshape(-1).copy(), u)):
                 by_rule = True
                 break
             if time_limit is not None and time.perf_counter() - t0 > time_limit:

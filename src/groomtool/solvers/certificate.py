@@ -175,3 +175,38 @@ def error_bound_with_dual(problem, r, lam) -> dict:
     delta = float(np.linalg.norm(y - lam))
     gap = 0.5 * delta * delta + float(phi.sum()) / (4.0 * problem.gamma)
     return {"gap": gap, "bound": 0.5 * (delta + math.sqrt(max(4.0 * gap - delta * delta, 0.0)))}
+
+
+def error_bound_with_strands(problem, r, h, HTr=None) -> dict:
+    """Certified bound on |A^T (r - r*)| (A = H D^1/2) from forces r (in the cones) and the dual point
+    l = D^1/2 h of a dof-space vector h, e.g. the strand-split ADMM's strand solves h = sum_e J_e^T x_e
+    (admm.StrandSplit.strand_sum: each strand's own H^T of its copies x of the forces).  Any D (diagonal or
+    dense blocks): everything is written with D_apply, never D^1/2:
+
+        delta^2 = |y - l|^2 = (H^T r - h)^T D (H^T r - h),      c = A l + b = H D h + b,
+        G = f(r) - g(l) = delta^2 / 2 + sum_i phi_i(a_i = 2 gamma r_i, v_i = c_i + 2 gamma r_i) / (4 gamma),
+        |A^T (r - r*)| <= (delta + sqrt(4 G - delta^2)) / 2.
+
+    Why it is an upper bound: weak duality makes g(l) <= f* for EVERY l, and with y* = A^T r* (strong duality)
+    f(r) - f* >= 1/2 |y - y*|^2 (r in the cones, r* optimal) and f* - g(l) >= 1/2 |l - y*|^2 (g is 1-strongly
+    concave, maximised at y*).  So a = |y - y*| and |l - y*| >= |a - delta| satisfy a^2 + (a - delta)^2 <= 2 G,
+    whose largest root is the bound above (4 G >= delta^2 always holds: a^2 + (a - delta)^2 >= delta^2 / 2).  It
+    is the module docstring's bound with l = y replaced by another l; nothing about l is assumed, so a stale or
+    unconverged h is still certified.  At ADMM's iterates the phi terms nearly vanish (c is about the velocity
+    the s-step projected against) and G is about the strands' disagreement |D^1/2 (H^T r - h)|^2 / 2, with no
+    1 / gamma factor (docs/solvers.md section 12).  Returns {"gap", "bound", "delta"}; inf without gamma."""
+    if not problem.gamma > 0:
+        return {"gap": math.inf, "bound": math.inf, "delta": math.nan}
+    r = np.asarray(r, dtype=np.float64).reshape(-1)
+    h = np.asarray(h, dtype=np.float64).reshape(-1)
+    Htr = problem.H.T @ r if HTr is None else np.asarray(HTr, dtype=np.float64).reshape(-1)
+    e = Htr - h
+    delta2 = max(float(e @ problem.D_apply(e)), 0.0)
+    m = problem.n_contacts
+    c = (problem.H @ problem.D_apply(h) + problem.b).reshape(m, 3)
+    phi = np.empty(m)
+    mu = np.ascontiguousarray(np.broadcast_to(np.asarray(problem.mu, dtype=np.float64), (m,)))
+    gap_terms(np.ascontiguousarray(r.reshape(m, 3)), np.ascontiguousarray(c), mu, 2.0 * problem.gamma, phi)
+    gap = 0.5 * delta2 + float(phi.sum()) / (4.0 * problem.gamma)
+    delta = math.sqrt(delta2)
+    return {"gap": gap, "bound": 0.5 * (delta + math.sqrt(max(4.0 * gap - delta2, 0.0))), "delta": delta}
