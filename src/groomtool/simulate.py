@@ -117,7 +117,8 @@ class SimulationParams:
     # 4.5e-9 m at 1e-8), and 1e-8 cost its sagging run hundreds of sweeps per step; no Anderson acceleration
     # (it cycles on the Coulomb law's stick/slip switches: the cold first step took 750 sweeps to 1e-6 with it,
     # 500 without); forward sweeps: the sagging run in 175 s CPU with 43 steps out of budget, symmetric ones
-    # 233 s with 56 (bench/results/simulate.md, docs/simulation.md section 6)
+    # 233 s with 56; since the Coulomb cluster Newton steps (docs/solvers.md section 13) 79 s with none
+    # (bench/results/simulate.md, docs/simulation.md section 6)
     solver_tolerance: float = 1e-6
     max_sweeps: int = 500  # the contact solver's sweep budget per step (a step that runs out is counted, with its residual)
     solver_symmetric: bool = False
