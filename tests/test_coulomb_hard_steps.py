@@ -11,6 +11,7 @@ import scipy.sparse as sp
 from groomtool.solvers import ContactProblem, solve_contact_problem
 from groomtool.solvers.cluster_newton import coulomb_map, newton_cluster
 from groomtool.solvers.gauss_seidel import AssembledOperator, MatrixFreeOperator, run_gauss_seidel
+from reference.solvers import coulomb_contact_errors
 
 
 def pair_rows(rng, m, n_s, stiff):
@@ -62,27 +63,6 @@ def dense_W(P):
     return H @ D @ H.T + 2 * P.gamma * np.eye(H.shape[0])
 
 
-def law_errors(P, r):
-    """Per contact the distance to Coulomb's law stated disjunctively (not the natural map the solvers use):
-    take-off (r = 0, u_N >= 0) | stick (r in the cone, u = 0) | slip (||r_T|| = mu r_N, u_N = 0,
-    u_T = -alpha r_T, alpha >= 0)."""
-    r = r.reshape(-1, 3)
-    u = P.velocity(r.reshape(-1)).reshape(-1, 3)
-    sr = np.abs(r).max()
-    su = max(np.abs(u).max(), np.abs(P.b).max())
-    out = []
-    for ri, ui, mu in zip(r, u, P.mu):
-        if np.linalg.norm(ri) <= 1e-10 * sr:
-            out.append(max(0.0, -ui[0]) / su)
-            continue
-        cone = max(0.0, np.linalg.norm(ri[1:]) - mu * ri[0]) / sr
-        stick = np.linalg.norm(ui) / su
-        nrt = np.linalg.norm(ri[1:])
-        alpha = max(0.0, -ui[1:] @ ri[1:] / nrt**2) if nrt > 0 else 0.0
-        slip = max(abs(nrt - mu * ri[0]) / sr, abs(ui[0]) / su,
-                   np.linalg.norm(ui[1:] + alpha * ri[1:]) / (su + alpha * sr)) if nrt > 0 else np.inf
-        out.append(max(cone, min(stick, slip)))
-    return np.array(out)
 
 
 @pytest.mark.parametrize("seed", [0, 2, 6, 7])
@@ -96,7 +76,7 @@ def test_cluster_steps_solve_the_stiff_pair_in_fewer_sweeps(seed, form):
     assert res.residual <= 1e-8 and P.residual(res.r, law="coulomb") <= 1e-8
     # the disjunctive law, normalised by the largest force and velocity (the stiff contact's: 1e-6 here is the
     # natural map's 1e-8 at the soft contacts): at least as close as plain Gauss-Seidel's solution
-    assert law_errors(P, res.r).max() <= max(1e-6, law_errors(P, plain.r).max())
+    assert coulomb_contact_errors(P, res.r).max() <= max(1e-6, coulomb_contact_errors(P, plain.r).max())
     assert any(c[1] for c in res.info["cluster"])  # a cluster step was taken ...
     assert res.iterations < plain.iterations  # ... and it saved sweeps (plain: 630-2040 sweeps)
     # both reach the same motion: W = H D H^T, so the impulses H^T r agree where r may not (W singular)
@@ -129,7 +109,7 @@ def test_newton_near_a_solution_converges_fast_on_a_singular_W(seed):
     r, res, its = newton_cluster(W, P.b, gs.r, P.mu, P.rho(), P.residual_scale(), 1e-11, max_iter=40)
     assert res <= 1e-10 and 1 <= its <= 30
     assert P.residual(r, law="coulomb") <= 1e-10  # residual.py's measure agrees with the cluster's own
-    assert law_errors(P, r).max() < 1e-8
+    assert coulomb_contact_errors(P, r).max() < 1e-8
 
 
 @pytest.mark.parametrize("seed", range(4))

@@ -14,6 +14,7 @@ from groomtool.solvers import ContactProblem, solve_contact_problem, solve_coulo
 from groomtool.solvers.blocks import UpperBlockDelassus, assemble_upper, upper_block_matvec
 from groomtool.solvers.cones import project_cone
 from groomtool.solvers.gauss_seidel import GIVE_UP_MIN_SWEEPS
+from reference.solvers import coulomb_contact_errors
 
 _spec = importlib.util.spec_from_file_location("bench_problems", Path(__file__).resolve().parents[1] / "bench" / "problems.py")
 problems = importlib.util.module_from_spec(_spec)
@@ -321,31 +322,6 @@ def test_over_relaxation_still_converges():
 # ----------------------------------------------------------------------------------------------
 # Coulomb
 # ----------------------------------------------------------------------------------------------
-def coulomb_contact_errors(P, r):
-    """Per-contact distance to the disjunctive Coulomb law (take-off | stick | slip)."""
-    r = r.reshape(-1, 3)
-    u = P.velocity(r.reshape(-1)).reshape(-1, 3)
-    sr = np.abs(r).max()
-    su = max(np.abs(u).max(), np.abs(P.b).max())
-    out = []
-    for i in range(P.n_contacts):
-        ri, ui, mu = r[i], u[i], P.mu[i]
-        if np.linalg.norm(ri) <= 1e-10 * sr:
-            out.append(max(0.0, -ui[0]) / su)
-            continue
-        cone = max(0.0, np.linalg.norm(ri[1:]) - mu * ri[0]) / sr
-        stick = np.linalg.norm(ui) / su
-        nrt = np.linalg.norm(ri[1:])
-        if nrt > 0:
-            alpha = max(0.0, -ui[1:] @ ri[1:] / nrt**2)
-            slip = max(abs(nrt - mu * ri[0]) / sr, abs(ui[0]) / su,
-                       np.linalg.norm(ui[1:] + alpha * ri[1:]) / (su + alpha * sr))
-        else:
-            slip = abs(ui[0]) / su if mu == 0 else np.inf
-        out.append(max(cone, min(stick, slip)))
-    return np.array(out)
-
-
 @pytest.mark.parametrize("method", ["gs", "fixed_point", "auto"])
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_coulomb_small_problems_satisfy_the_law(method, seed):

@@ -3,6 +3,8 @@
 * :func:`solve_local`: many 3x3 local problems at once through the package's per-block kernels
   (:func:`groomtool.solvers.local.normalize_block`, :func:`groomtool.solvers.local.solve_block`), as
   Gauss-Seidel calls them for each contact.
+* :func:`coulomb_contact_errors`: per contact the distance to Coulomb's law stated disjunctively (take-off |
+  stick | slip), independent of the natural map the solvers stop on.
 """
 
 from __future__ import annotations
@@ -49,3 +51,30 @@ def solve_local(A, c, mu, law="soc", r0=None, tol=LOCAL_TOL, max_newton=NEWTON_M
     if single:
         return r[0], int(status[0])
     return r, status
+
+
+def coulomb_contact_errors(P, r):
+    """Per contact the distance to Coulomb's law stated disjunctively (not the natural map the solvers use):
+    take-off (r = 0, u_N >= 0) | stick (r in the cone, u = 0) | slip (||r_T|| = mu r_N, u_N = 0,
+    u_T = -alpha r_T, alpha >= 0); a frictionless contact (mu = 0) slips with r_T = 0."""
+    r = r.reshape(-1, 3)
+    u = P.velocity(r.reshape(-1)).reshape(-1, 3)
+    sr = np.abs(r).max()
+    su = max(np.abs(u).max(), np.abs(P.b).max())
+    out = []
+    for i in range(P.n_contacts):
+        ri, ui, mu = r[i], u[i], P.mu[i]
+        if np.linalg.norm(ri) <= 1e-10 * sr:
+            out.append(max(0.0, -ui[0]) / su)
+            continue
+        cone = max(0.0, np.linalg.norm(ri[1:]) - mu * ri[0]) / sr
+        stick = np.linalg.norm(ui) / su
+        nrt = np.linalg.norm(ri[1:])
+        if nrt > 0:
+            alpha = max(0.0, -ui[1:] @ ri[1:] / nrt**2)
+            slip = max(abs(nrt - mu * ri[0]) / sr, abs(ui[0]) / su,
+                       np.linalg.norm(ui[1:] + alpha * ri[1:]) / (su + alpha * sr))
+        else:
+            slip = abs(ui[0]) / su if mu == 0 else np.inf
+        out.append(max(cone, min(stick, slip)))
+    return np.array(out)
