@@ -331,8 +331,8 @@ def test_head_contacts_are_detected_again_only_for_the_strands_that_moved():
     zero = (np.zeros(4), np.zeros(4))
     found = tracker.detect(moved, sh.kinematics(moved), 0.0, zero)
     assert tracker.head_redetections == 5  # strand 2 only
-    fresh_sim = Simulator(moved, moved.curvatures, Material(), GRAVITY, head=sphere,
-                          params=SimulationParams(dt=1 / 240, contacts="head", contact_radius=50e-6, detection_skin=0.0))
+    every_step = SimulationParams(dt=1 / 240, contacts="head", contact_radius=50e-6, detection_skin=0.0)
+    fresh_sim = Simulator(moved, moved.curvatures, Material(), GRAVITY, head=sphere, params=every_step)
     fresh = fresh_sim.tracker.initial
     assert found.strand_a.tolist() == fresh.strand_a.tolist()
     for name in ("s_a", "distance", "point_a", "normal"):

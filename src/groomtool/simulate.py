@@ -87,9 +87,10 @@ class SimulationParams:
     scaled down (counted in the result's stats).  detection_skin (m, None: the contact radius): the
     contact set of a detection pass is kept while no sample moved by more than half of it
     (simulate_contacts.py); 0 detects every step.  reuse_rotation (rad, 0: off): a Super-Helix groom at rest
-    (static head; no element turned by more than this since the last assembly) keeps that assembly's M, factorised Mhat, contacts and H (Simulator._at_rest_system).  solver, solver_tolerance, max_sweeps, solver_symmetric and
-    solver_anderson: the Coulomb solve of each step (solver_symmetric: forward + backward sweeps;
-    solver_anderson: the Anderson memory, 0 none).
+    (static head; no element turned by more than this since the last assembly) keeps that assembly's M,
+    factorised Mhat, contacts and H (Simulator._at_rest_system).  solver, solver_tolerance, max_sweeps,
+    solver_symmetric and solver_anderson: the Coulomb solve of each step (solver_symmetric: forward + backward
+    sweeps; solver_anderson: the Anderson memory, 0 none).
     """
 
     dt: float = 1.0 / 240.0
@@ -125,9 +126,9 @@ class SimulationParams:
     solver_anderson: int = 0
     refresh_warm_start: bool = True  # one sweep from an accepted warm start (solve_contacts)
     keep_step_corrections: bool = True  # reuse a modified strand's step-matrix correction (factor_step_matrix)
-    # a groom at rest (every element within reuse_rotation rad of its orientation at the last assembly) keeps that
-    # assembly's step matrices, contact set and H; F(q), K (q - q0), the
-    # right-hand side and the contact solve are new every step (AtRestSystem; 0: assemble every step)
+    # a groom at rest (every element within reuse_rotation rad of its orientation at the last assembly) keeps
+    # that assembly's step matrices, contact set and H; F(q), K (q - q0), the right-hand side and the contact
+    # solve are new every step (AtRestSystem; 0: assemble every step)
     reuse_rotation: float = 1e-7
     # Super Space Clothoids: compute their velocity terms A (dyn.clothoid_velocity_terms: exact, by complex steps,
     # 80-170 ms per step on 5-strand USC styles, 2-4x M and dF/dq); off: dropped (exact at rest)
@@ -369,10 +370,7 @@ class Simulator:
         S, N = self.lengths.shape
         rhs = np.zeros((S, 3 * N))
         for a, b, M, A in self._at_rest.inertia:
-            n = M.shape[1]
-            Nc = n // 3
-            f = force[a:b, :Nc] if A is None else force[a:b, :Nc] - A
-            rhs[a:b, :n] = np.einsum("sij,sj->si", M, st.rates[a:b, :Nc].reshape(b - a, n)) + h * f.reshape(b - a, n)
+            rhs[a:b, :M.shape[1]] = _chunk_rhs(M, A, force, st.rates, a, b, h)
         rhs[~np.repeat(self.mask, 3, axis=1)] = 0.0
         v_free = kept.factors.solve(rhs).reshape(S, N, 3)
         system = StepSystem(helix=helix, kin=kin, factors=kept.factors, v_free=v_free)
@@ -418,8 +416,7 @@ class Simulator:
                                      order=p.quadrature_order, root_motion=pose.root_motion, strands=(a, b))
             n = M.shape[1]
             Nc = n // 3
-            f = force[a:b, :Nc] if A is None else force[a:b, :Nc] - A
-            rhs[a:b, :n] = np.einsum("sij,sj->si", M, st.rates[a:b, :Nc].reshape(b - a, n)) + h * f.reshape(b - a, n)
+            rhs[a:b, :n] = _chunk_rhs(M, A, force, st.rates, a, b, h)
             if self._inertia_kept is not None:
                 self._inertia_kept.append((a, b, M.copy(), A))
             t0 = self._time("dynamics", t0)
@@ -459,8 +456,7 @@ class Simulator:
                                             st.rates if self.velocity_terms else None)
             n = M.shape[1]
             nodes = n // 3
-            f = force[a:b, :nodes] if A is None else force[a:b, :nodes] - A
-            rhs[a:b, :n] = np.einsum("sij,sj->si", M, st.rates[a:b, :nodes].reshape(b - a, n)) + h * f.reshape(b - a, n)
+            rhs[a:b, :n] = _chunk_rhs(M, A, force, st.rates, a, b, h)
             dF = M if dF is None else dF
             K = _banded_dense(self.K[0][a:b, :nodes], self.K[1][a:b, :nodes - 1])
             t0 = self._time("dynamics", t0)
@@ -739,6 +735,15 @@ def simulate(helix: sh.SuperHelix, rest_curvatures, material: Material, gravity,
              "velocity_terms": sim.velocity_terms}
     return SimulationResult(times=np.array(times), frames=np.stack(frames), offsets=offsets, tips=np.stack(tips),
                             final=sim.state, helix=sim.helix(), timings=timings, stats=stats)
+
+
+def _chunk_rhs(M, A, force, rates, a: int, b: int, h: float) -> np.ndarray:
+    """The right-hand side M v + h (f - A) of strands a..b-1 (M (chunk, n, n) on their first n = 3 N_c dofs; A None:
+    no velocity terms); f = F - K (q - q0) (+ external)."""
+    n = M.shape[1]
+    Nc = n // 3
+    f = force[a:b, :Nc] if A is None else force[a:b, :Nc] - A
+    return np.einsum("sij,sj->si", M, rates[a:b, :Nc].reshape(b - a, n)) + h * f.reshape(b - a, n)
 
 
 # --------------------------------------------------------------------------- Super Space Clothoid helpers

@@ -334,7 +334,7 @@ class ContactTracker:
         else:
             moved = np.maximum.reduceat(np.sqrt(np.sum((pts - c.samples) ** 2, axis=1)), offsets[:-1])
             stale = ~(moved + np.maximum(head_margin - c.margin, 0.0) <= c.skin) | (c.skin <= 0.0)
-        kept = None
+        old = kept = None  # the candidates of the strands that keep theirs, and those revisited
         if c.candidates is not None and len(c.candidates.strand_a):
             old = c.candidates.subset(~stale[c.candidates.strand_a])
             if len(old.strand_a):
@@ -355,10 +355,8 @@ class ContactTracker:
         c.margin[redo] = head_margin[redo]
         c.skin[redo] = skin
         self.head_redetections += len(redo)
-        keep_old = (c.candidates.subset(~stale[c.candidates.strand_a])
-                    if c.candidates is not None and len(c.candidates.strand_a) else None)
         found.radius = None
-        merged = Contacts.concatenate([x for x in (keep_old, found) if x is not None])
+        merged = Contacts.concatenate([x for x in (old, found) if x is not None])
         c.candidates = merged.subset(np.argsort(merged.strand_a, kind="stable"))
         fresh = found if kept is None else Contacts.concatenate([kept, found])
         return fresh.subset(np.argsort(fresh.strand_a, kind="stable")), True
