@@ -179,7 +179,7 @@ def main() -> None:
     ap.add_argument("--grooms", default="harolongo,usc10k")
     ap.add_argument("--modes", default="none,head,all")
     ap.add_argument("--max-sweeps", type=int, default=500)
-    ap.add_argument("--solver", default="auto", choices=["auto", "gs", "clarabel"])
+    ap.add_argument("--solver", default="auto", choices=["auto", "gs", "clarabel", "admm"])
     ap.add_argument("--q0-tolerance", type=float, default=None, help="(default: invert's own)")
     ap.add_argument("--strict", action="store_true")
     ap.add_argument("--append", action="store_true", help="add the rows to the existing results file")

@@ -79,6 +79,22 @@ def test_bad_material_is_a_user_error(example, tmp_path, capsys):
     assert "young_modulus" in capsys.readouterr().err
 
 
+def test_the_strand_split_admm_can_be_asked_for_and_an_unknown_solver_is_refused(example, tmp_path):
+    """--solver admm runs the strand-split ADMM whatever the contacts (auto only takes it for dense ones beyond
+    10,000); InversionParams refuses a solver it does not know instead of failing inside the solve."""
+    from groomtool.invert import InversionParams
+
+    groom_path, head_path = example
+    out = tmp_path / "admm"
+    assert main(["invert", str(groom_path), "--head", str(head_path), "--contacts", "all", "--contact-radius", "5e-4",
+                 "--solver", "admm", "-q", "-o", str(out)]) == EXIT_OK
+    report = json.loads((out / "report.json").read_text())
+    assert report["parameters"]["solver"] == "admm" and report["solve"]["solver"] == "admm"
+    assert report["contacts"]["total"] > 0 and report["equilibrium"]["max_relative_residual"] < 1e-9
+    with pytest.raises(ValueError, match="solver must be one of"):
+        InversionParams(solver="admn")
+
+
 def test_solver_tolerance_and_sweep_budget(example, tmp_path, capsys):
     """--solver-tolerance and --max-sweeps reach the solve; a budget too small for the tolerance is exit 2
     with the residual, nothing written, under --strict, else exit 0 with the feasible forces and a warning;

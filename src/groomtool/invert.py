@@ -32,6 +32,7 @@ from .stabilize import DEFAULT_CAP, DEFAULT_MARGIN, MAX_ROUNDS, STABILIZE_MODES,
 from .timing import Timer, progress
 
 GUESSES = ("current", "tip")
+SOLVERS = ("auto", "gs", "clarabel", "admm")  # the contact solve (solver_choice.py; admm: solvers/admm.py)
 CONTACT_MODES = ("none", "head", "all")
 
 
@@ -63,7 +64,7 @@ class InversionParams:
     wisp_radius: float | None = None  # each strand stands for a wisp of this radius (guide strands): see wisp_report
     guess: str = "current"  # current | tip
     gamma: float = 1e-4
-    solver: str = "auto"  # clarabel | gs | auto
+    solver: str = "auto"  # auto | gs | clarabel | admm (SOLVERS)
     solver_tolerance: float = 1e-8
     max_sweeps: int = 5000  # the Gauss-Seidel sweep budget (--max-sweeps; clarabel keeps its own iteration limit)
     q0_tolerance: float | None = Q0_TOLERANCE  # stop once the certified relative rest-curvature error is below
@@ -87,6 +88,8 @@ class InversionParams:
             raise ValueError(f"contacts must be one of {CONTACT_MODES}, got {self.contacts!r}")
         if self.guess not in GUESSES:
             raise ValueError(f"guess must be one of {GUESSES}, got {self.guess!r}")
+        if self.solver not in SOLVERS:
+            raise ValueError(f"solver must be one of {SOLVERS}, got {self.solver!r}")
         if not (self.gamma >= 0):
             raise ValueError(f"gamma must be >= 0, got {self.gamma}")
         if not (self.tolerance > 0):

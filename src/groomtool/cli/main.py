@@ -71,11 +71,10 @@ def build_parser() -> argparse.ArgumentParser:
                      help="rest-curvature guess of the inverse problem: the groomed curvatures, or each strand's tip curvature")
     inv.add_argument("--gamma", type=float, default=None,
                      help="regularisation of the contact forces, relative to the Delassus diagonal (default 1e-4; see docs/maths.md)")
-    inv.add_argument("--solver", choices=["clarabel", "gs", "auto"], default="auto",
+    inv.add_argument("--solver", choices=["clarabel", "gs", "admm", "auto"], default="auto",
                      help="contact solver: clarabel (interior point, polished by Gauss-Seidel; up to ~10k contacts), "
-                          "gs (Gauss-Seidel), auto (gs for sparse contacts, the strand-split ADMM for dense ones beyond 10k, "
-                          "else clarabel; "
-                          "see docs/cli.md)")
+                          "gs (Gauss-Seidel), admm (the strand-split ADMM for dense contacts), auto (gs for sparse "
+                          "contacts, admm for dense ones beyond 10k, else clarabel; see docs/cli.md)")
     inv.add_argument("--solver-tolerance", type=float, default=1e-8, metavar="TOL",
                      help="optimality of the contact forces: the scaled natural-map residual to reach (default "
                           "1e-8; any forces in their cones give an exact equilibrium, this only decides how close "
