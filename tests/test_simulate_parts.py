@@ -382,8 +382,8 @@ def test_progress_announces_each_run_and_names_the_runs_to_come():
         bar.step(seconds)
     bar.close()
     text = stream.getvalue()
-    assert "estimated run time of inverted: ~0 s more for 6 steps (50 ms/step); then naive (10 steps)" in text
-    assert "estimated run time of naive: ~3 s more for 6 steps (500 ms/step)" in text
+    assert "estimated run time of inverted: ~0.3 s more for 6 steps (50 ms/step); then naive (10 steps)" in text
+    assert "estimated run time of naive: ~3.0 s more for 6 steps (500 ms/step)" in text
 
 
 # --------------------------------------------------------------------------- groom check
