@@ -217,11 +217,12 @@ class ClusterNewton:
         if idx is None:
             return None
         op = self.op
-        Wss = op.dense_block(idx)
-        rS = np.ascontiguousarray(r[idx]).reshape(-1)
-        c = np.ascontiguousarray(u[idx]).reshape(-1) - Wss @ rS
-        before = float(np.max(self._e[idx])) / scale
-        with one_blas_thread():  # dense solves of at most 600 rows: BLAS threads only wait (86 ms -> 2 ms a solve)
+        # dense products and solves of at most 600 rows: BLAS threads only wait (86 ms -> 2 ms a solve)
+        with one_blas_thread():
+            Wss = op.dense_block(idx)
+            rS = np.ascontiguousarray(r[idx]).reshape(-1)
+            c = np.ascontiguousarray(u[idx]).reshape(-1) - Wss @ rS
+            before = float(np.max(self._e[idx])) / scale
             new, after, its = newton_cluster(Wss, c, rS, op.mu[idx], op.rho[idx], scale, 0.1 * tol, self.max_iter)
         self.last.update(iterations=its, residual=after)
         if not (its > 0 and after < before and np.all(np.isfinite(new))):
