@@ -44,7 +44,6 @@ import scipy.sparse as sp  # noqa: E402
 from groomtool.inverse_problem import rest_curvature_error_bound  # noqa: E402
 from groomtool.solvers import solve_contact_problem  # noqa: E402
 from groomtool.solvers.anderson import AndersonMixer  # noqa: E402
-from groomtool.solvers.anderson import norm as _norm  # noqa: E402
 from groomtool.solvers.certificate import project_forces  # noqa: E402
 
 
@@ -79,7 +78,7 @@ def admm(inv, cp, beta=0.03, alpha=1.8, anderson=8, warm=20, target=1e-3, cpu=12
     rhs = np.zeros(n + m3)
     x = np.concatenate([s, lam])
     mixer = AndersonMixer(2 * m3, anderson, dtype=np.float64) if anderson else None
-    best, restarts = np.inf, 0
+    restarts = 0
     xn = np.empty_like(x)
     k = 0
     while True:
@@ -94,14 +93,7 @@ def admm(inv, cp, beta=0.03, alpha=1.8, anderson=8, warm=20, target=1e-3, cpu=12
         if mixer is None:
             x = tx
         else:
-            f = tx - x
-            fn = _norm(f)
-            if fn > 10.0 * best:
-                mixer.reset()
-                restarts += 1
-                best = fn
-            best = min(best, fn)
-            mixer.step(x, f, xn)
+            restarts += mixer.guarded_step(x, tx - x, xn)
             x, xn = xn, x
         if k % every == 0:
             th = time.process_time()

@@ -40,7 +40,6 @@ from numba import njit
 
 from . import residual as _res
 from .anderson import AndersonMixer
-from .anderson import norm as _norm
 from .cones import SOC, project_cone
 
 _FM = {"contract", "arcp", "nsz"}
@@ -473,7 +472,6 @@ def run_admm(
     w = np.empty((E, 3))
     x = np.empty((E, 3))
     gamma2 = 2.0 * problem.gamma
-    best = math.inf
     restarts = 0
     k = 0
     by_rule = False
@@ -487,13 +485,7 @@ def run_admm(
         else:
             zf = z.reshape(-1)
             np.subtract(nxt.reshape(-1), zf, out=f)
-            fn = _norm(f)
-            if fn > 10.0 * best:
-                mixer.reset()
-                restarts += 1
-                best = fn
-            best = min(best, fn)
-            mixer.step(zf, f, zf)
+            restarts += mixer.guarded_step(zf, f, zf)
         if k % check_every == 0 or k >= max_iter:
             res, u = measure(s)
             history.append((k, res, time.perf_counter() - t0))

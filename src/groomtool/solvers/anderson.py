@@ -19,6 +19,8 @@ import math
 import numpy as np
 from numba import njit
 
+RESTART_GROWTH = 10.0  #: guarded_step restarts the history when ||f|| grows this much over its smallest since
+
 
 @njit(cache=True, fastmath=True)
 def _dot(a, b):
@@ -95,6 +97,7 @@ class AndersonMixer:
         self.count = 0
         self.slot = 0
         self.has_prev = False
+        self.best = math.inf  # the smallest ||f|| since the last reset (guarded_step)
 
     @property
     def nbytes(self) -> int:
@@ -104,6 +107,19 @@ class AndersonMixer:
         self.count = 0
         self.slot = 0
         self.has_prev = False
+        self.best = math.inf
+
+    def guarded_step(self, x: np.ndarray, f: np.ndarray, out: np.ndarray) -> bool:
+        """:meth:`step`, after restarting the history when ||f|| grew RESTART_GROWTH-fold over the smallest since
+        the last reset (the mixing diverges: seen with Gauss-Seidel and ADMM on hair problems).  Returns whether
+        it restarted."""
+        fn = norm(f)  # not np.linalg.norm: no BLAS threads (issue 22)
+        restarted = fn > RESTART_GROWTH * self.best
+        if restarted:
+            self.reset()
+        self.best = min(self.best, fn)
+        self.step(x, f, out)
+        return restarted
 
     def step(self, x: np.ndarray, f: np.ndarray, out: np.ndarray) -> None:
         """out = the next iterate from x_k, f_k = G(x_k) - x_k (plain x + f until there is history)."""

@@ -40,7 +40,6 @@ from numba import njit
 
 from . import residual as _res
 from .anderson import AndersonMixer
-from .anderson import norm as _anderson_norm
 from .blocks import UpperBlockDelassus, assemble_upper, upper_block_matvec
 from .cluster_newton import ClusterNewton
 from .cones import COULOMB, SOC, law_code
@@ -704,7 +703,6 @@ def run_gauss_seidel(
     xf = x.reshape(-1)
     gf = g.reshape(-1)
     f = np.empty(3 * m)
-    best_f = np.inf
     next_check = check_every
     sym_on = symmetric is True
     sym_at = None if isinstance(symmetric, bool) else float(symmetric)
@@ -779,7 +777,6 @@ def run_gauss_seidel(
                         g[:] = x
                     if mixer is not None:
                         mixer.reset()
-                        best_f = np.inf
                     if res <= tol:
                         break
                     continue
@@ -796,7 +793,6 @@ def run_gauss_seidel(
                     x[:] = step[0]
                     if mixer is not None:
                         mixer.reset()
-                        best_f = np.inf
                     if g is not x:
                         g[:] = x
                     continue
@@ -804,18 +800,12 @@ def run_gauss_seidel(
             sym_on = True  # from here on symmetric sweeps, with a fresh Anderson history
             if mixer is not None:
                 mixer.reset()
-                best_f = np.inf
         if mixer is None or sweeps < anderson_start:
             x = g
             xf = gf
             continue
         np.subtract(gf, xf, out=f)
-        fn = _anderson_norm(f)  # not np.linalg.norm: no BLAS threads (issue 22)
-        if fn > 10.0 * best_f:
-            mixer.reset()
-            best_f = fn
-        best_f = min(best_f, fn)
-        mixer.step(xf, f, xf)  # x <- Anderson mix of (x, G(x))
+        mixer.guarded_step(xf, f, xf)  # x <- Anderson mix of (x, G(x))
     if history[-1][0] != sweeps:
         res = measure(g)
         history.append((sweeps, res, time.perf_counter() - t0))
