@@ -167,14 +167,22 @@ def error_bound_with_dual(problem, r, lam) -> dict:
     lam = np.asarray(lam, dtype=np.float64).reshape(-1)
     sqrt_d = np.sqrt(problem.D_data)
     y = sqrt_d * (problem.H.T @ r)
-    m = problem.n_contacts
-    c = (problem.H @ (sqrt_d * lam) + problem.b).reshape(m, 3)
-    phi = np.empty(m)
-    gap_terms(np.ascontiguousarray(r.reshape(m, 3)), np.ascontiguousarray(c), np.ascontiguousarray(problem.mu),
-              2.0 * problem.gamma, phi)
     delta = float(np.linalg.norm(y - lam))
-    gap = 0.5 * delta * delta + float(phi.sum()) / (4.0 * problem.gamma)
-    return {"gap": gap, "bound": 0.5 * (delta + math.sqrt(max(4.0 * gap - delta * delta, 0.0)))}
+    gap, bound = _gap_and_bound(problem, r, problem.H @ (sqrt_d * lam) + problem.b, delta * delta)
+    return {"gap": gap, "bound": bound}
+
+
+def _gap_and_bound(problem, r, c, delta2: float) -> tuple[float, float]:
+    """G = f(r) - g(l) = delta^2 / 2 + sum_i phi_i(2 gamma r_i, c_i + 2 gamma r_i) / (4 gamma) at a dual point l
+    with c = A l + b (3m,) and delta^2 = |A^T r - l|^2, and the bound (delta + sqrt(4 G - delta^2)) / 2 on
+    |A^T (r - r*)| (module docstring)."""
+    m = problem.n_contacts
+    phi = np.empty(m)
+    mu = np.ascontiguousarray(np.broadcast_to(np.asarray(problem.mu, dtype=np.float64), (m,)))
+    gap_terms(np.ascontiguousarray(np.asarray(r, dtype=np.float64).reshape(m, 3)),
+              np.ascontiguousarray(np.asarray(c, dtype=np.float64).reshape(m, 3)), mu, 2.0 * problem.gamma, phi)
+    gap = 0.5 * delta2 + float(phi.sum()) / (4.0 * problem.gamma)
+    return gap, 0.5 * (math.sqrt(delta2) + math.sqrt(max(4.0 * gap - delta2, 0.0)))
 
 
 def error_bound_with_strands(problem, r, h, HTr=None) -> dict:
@@ -202,11 +210,5 @@ def error_bound_with_strands(problem, r, h, HTr=None) -> dict:
     Htr = problem.H.T @ r if HTr is None else np.asarray(HTr, dtype=np.float64).reshape(-1)
     e = Htr - h
     delta2 = max(float(e @ problem.D_apply(e)), 0.0)
-    m = problem.n_contacts
-    c = (problem.H @ problem.D_apply(h) + problem.b).reshape(m, 3)
-    phi = np.empty(m)
-    mu = np.ascontiguousarray(np.broadcast_to(np.asarray(problem.mu, dtype=np.float64), (m,)))
-    gap_terms(np.ascontiguousarray(r.reshape(m, 3)), np.ascontiguousarray(c), mu, 2.0 * problem.gamma, phi)
-    gap = 0.5 * delta2 + float(phi.sum()) / (4.0 * problem.gamma)
-    delta = math.sqrt(delta2)
-    return {"gap": gap, "bound": 0.5 * (delta + math.sqrt(max(4.0 * gap - delta2, 0.0))), "delta": delta}
+    gap, bound = _gap_and_bound(problem, r, problem.H @ problem.D_apply(h) + problem.b, delta2)
+    return {"gap": gap, "bound": bound, "delta": math.sqrt(delta2)}
