@@ -18,7 +18,7 @@ import numpy as np
 from numba import njit
 
 from groomtool.fit.error import PRECHECK_STRIDE, _closest_s, _element_arrays
-from groomtool.fit.helix import _TINY, ANTIPODAL_M, FLAT_D, STRAIGHT_D, HelixSolution, helix_chord
+from groomtool.fit.helix import _TINY, ANTIPODAL_M, FLAT_D, NEAR_STRAIGHT_D, STRAIGHT_D, HelixSolution, helix_chord
 from groomtool.fit.kernels import cross, dot, f123
 from groomtool.fit.sampling import _kept
 from groomtool.fit.state import CurveTable, root_frames
@@ -65,11 +65,7 @@ def solve_helix_numpy(t0, t1, chord, chord_tolerance=None, max_iter: int = 100) 
     along = dot(ch, mh) >= 1.0 - 5e-13          # chord within 1e-6 rad of the bisector
     arc = (d < STRAIGHT_D) & along
     if np.any(arc):
-        # the minimal rotation (least twist): a planar arc of winding 2 asin(d), chord l sin(h)/h
-        axis, _ = _unit(cross(t0[arc], t1[arc]))
-        h = np.arcsin(np.minimum(d[arc], 1.0))
-        phi_out[arc] = (2.0 * h)[:, None] * axis
-        length[arc] = cl[arc] / np.sinc(h / np.pi)
+        phi_out[arc], length[arc] = _planar_arc(t0[arc], t1[arc], d[arc], cl[arc])
         kind[arc] = 1
     flat = (d < FLAT_D) & ~arc
     if np.any(flat):
@@ -134,7 +130,28 @@ def solve_helix_numpy(t0, t1, chord, chord_tolerance=None, max_iter: int = 100) 
         phi_out[gen] = (2.0 * h)[:, None] * a
         length[gen] = np.sqrt(dot(c_pi, c_pi)) / np.sqrt(ma * ma + (dg / h) ** 2)
         iterations[gen] = its
+        # nearly straight: keep the planar arc where its chord is closer to c than the helix's
+        near = gen[(dg < NEAR_STRAIGHT_D) & along[gen]]
+        if len(near):
+            arc_phi, arc_length = _planar_arc(t0[near], t1[near], d[near], cl[near])
+            better = (_chord_error(arc_phi, arc_length, t0[near], chord[near])
+                      < _chord_error(phi_out[near], length[near], t0[near], chord[near]))
+            idx = near[better]
+            phi_out[idx], length[idx], kind[idx] = arc_phi[better], arc_length[better], 1
     return HelixSolution(phi_out, length, iterations, kind)
+
+
+def _planar_arc(t0, t1, d, cl):
+    """The minimal rotation (least twist): a planar arc of winding 2 asin(d), chord l sin(h)/h = |c|."""
+    axis, _ = _unit(cross(t0, t1))
+    h = np.arcsin(np.minimum(d, 1.0))
+    return (2.0 * h)[:, None] * axis, cl / np.sinc(h / np.pi)
+
+
+def _chord_error(phi, length, t0, chord):
+    """|helix_chord(phi, length, t0) - chord|^2 per element."""
+    e = helix_chord(phi, length, t0) - chord
+    return e[:, 0] * e[:, 0] + e[:, 1] * e[:, 1] + e[:, 2] * e[:, 2]
 
 
 def cohelicity_defect(t0, t1, chord):

@@ -27,7 +27,9 @@ l = |c| / sqrt((a . m/2)^2 + (d/h)^2).
 Nearly straight pieces (d < 1e-9, chord within 1e-6 rad of m): the direction n is then known only to
 ~1e-16/d, and the twist (the axis tilt phi, tan(phi) ~ 3 delta / d^2 for a chord-bisector angle delta)
 is amplified noise; the minimal rotation (phi = 0: a planar arc, least twist, l = |c| h / sin h) is
-returned instead, with a chord error |c| delta.  t1 = t0 to round-off (d < 1e-15) with the chord off
+returned instead, with a chord error |c| delta.  Up to d < 1e-6 F is still flat to O(d^2) ~ round-off
+over most of the bracket and its root can be lost (a full turn returned for a straight piece): there
+both the helix and the arc are computed and the one whose chord is closer to c is kept.  t1 = t0 to round-off (d < 1e-15) with the chord off
 t0: one full turn about c (Phi = 2 pi c/|c|, l = |c| / (t0 . c/|c|)).  t1 = -t0 (m = 0): b2 is
 taken along the chord, and the same equation gives the half turn about t0 x c.
 
@@ -49,6 +51,7 @@ from .kernels import cross, dot, f123, f123_s, sinc_s
 
 _TINY = 1e-300
 STRAIGHT_D = 1e-9        # d below this and chord along t0 + t1: a planar arc (twist undetermined)
+NEAR_STRAIGHT_D = 1e-6   # d below this and chord along t0 + t1: the helix or the arc, whichever meets the chord
 FLAT_D = 1e-15           # d below this: t1 == t0 to round-off, the plane Pi is undefined
 ANTIPODAL_M = 1e-8       # |t0 + t1| below this: t1 == -t0, the bisector is not a direction
 
@@ -181,14 +184,7 @@ def _solve_one(a0, a1, a2, b0, b1, b2, c0, c1, c2, budget, gated, max_iter, k, p
     along = h0 * (m0 / nrm) + h1 * (m1 / nrm) + h2 * (m2 / nrm) >= 1.0 - 5e-13
     iterations[k] = 0
     if d < STRAIGHT_D and along:
-        # the minimal rotation (least twist): a planar arc of winding 2 asin(d), chord l sin(h)/h
-        x0, x1, x2 = a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0
-        nrm = _max_s(np.sqrt(x0 * x0 + x1 * x1 + x2 * x2), _TINY)
-        h = np.arcsin(min(d, 1.0))
-        w = 2.0 * h
-        phi[k, 0], phi[k, 1], phi[k, 2] = w * (x0 / nrm), w * (x1 / nrm), w * (x2 / nrm)
-        length[k] = cl / sinc_s(h / np.pi)
-        kind[k] = 1
+        _planar_arc(a0, a1, a2, b0, b1, b2, d, cl, k, phi, length, kind)
         return
     if d < FLAT_D:
         cos_a = h0 * a0 + h1 * a1 + h2 * a2
@@ -253,6 +249,41 @@ def _solve_one(a0, a1, a2, b0, b1, b2, c0, c1, c2, budget, gated, max_iter, k, p
     length[k] = np.sqrt(p0 * p0 + p1 * p1 + p2 * p2) / np.sqrt(ma * ma + (d / h) ** 2)
     iterations[k] = its
     kind[k] = 0
+    if d < NEAR_STRAIGHT_D and along:
+        # F is flat to O(d^2) here and its root can be lost in round-off: keep the arc if it meets the chord better
+        x0, x1, x2 = phi[k, 0], phi[k, 1], phi[k, 2]
+        l = length[k]
+        _planar_arc(a0, a1, a2, b0, b1, b2, d, cl, k, phi, length, kind)
+        if _chord_error_s(phi[k, 0], phi[k, 1], phi[k, 2], length[k], a0, a1, a2, c0, c1, c2) \
+                >= _chord_error_s(x0, x1, x2, l, a0, a1, a2, c0, c1, c2):
+            phi[k, 0], phi[k, 1], phi[k, 2] = x0, x1, x2
+            length[k] = l
+            kind[k] = 0
+
+
+@njit(cache=True, error_model="numpy")
+def _planar_arc(a0, a1, a2, b0, b1, b2, d, cl, k, phi, length, kind):
+    """The minimal rotation (least twist) from a = t0 to b = t1: a planar arc of winding 2 asin(d) about
+    t0 x t1 and chord l sin(h)/h = |c|, written at index k."""
+    x0, x1, x2 = a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0
+    nrm = _max_s(np.sqrt(x0 * x0 + x1 * x1 + x2 * x2), _TINY)
+    h = np.arcsin(min(d, 1.0))
+    w = 2.0 * h
+    phi[k, 0], phi[k, 1], phi[k, 2] = w * (x0 / nrm), w * (x1 / nrm), w * (x2 / nrm)
+    length[k] = cl / sinc_s(h / np.pi)
+    kind[k] = 1
+
+
+@njit(cache=True, error_model="numpy")
+def _chord_error_s(x0, x1, x2, l, t0, t1, t2, c0, c1, c2):
+    """|helix_chord(Phi, l, t0) - c|^2 for one element (the operations of :func:`helix_chord`)."""
+    _, f2, f3 = f123_s(x0 * x0 + x1 * x1 + x2 * x2)
+    q0, q1, q2 = x1 * t2 - x2 * t1, x2 * t0 - x0 * t2, x0 * t1 - x1 * t0
+    r0, r1, r2 = x1 * q2 - x2 * q1, x2 * q0 - x0 * q2, x0 * q1 - x1 * q0
+    e0 = l * (t0 + f2 * q0 + f3 * r0) - c0
+    e1 = l * (t1 + f2 * q1 + f3 * r1) - c1
+    e2 = l * (t2 + f2 * q2 + f3 * r2) - c2
+    return e0 * e0 + e1 * e1 + e2 * e2
 
 
 @njit(cache=True, error_model="numpy")
