@@ -488,49 +488,78 @@ class HeldStability:
 
 
 def contact_load_hessians(helix: sh.SuperHelix, strands, point_strand, point_s, point_force,
-                          rotation_step: float = 1e-6, chunk_dofs: int = 6000) -> list:
+                          rotation_step: float = 1e-6, chunk_dofs: int = 6000, chunk: int = 256) -> list:
     """d(J^T f)/dq per listed strand (dense n x n, n = 3 N_s): the stiffness of the world point loads
     f_p at arc lengths s_p held fixed (dead loads), i.e. the Hessian of sum_p f_p . C(s_p; q).
 
-    Central differences of the exact generalized force (contact.jacobian.point_forces_generalized) with
-    a step of ``rotation_step`` radians per element (dq_j = rotation_step / l_j): truncation O(step^2) and
-    round-off O(eps / step), about 1e-10 relative; symmetrised (it is a Hessian).  Strands are batched so
-    that at most ``chunk_dofs`` perturbed copies are built at once."""
-    from .contact.jacobian import point_forces_generalized
+    Super-Helices: **analytic** (superhelix.point_load_hessian_parts, O(N_s^2 + P) per strand).  With
+    J_pk = dC(s_p)/domega_k, a change of omega_j (j < k) moves everything beyond S_{j+1} rigidly, so block
+    (j, k) = Theta_j^T A_k with A_k = -sum_{e_p >= k} [f_p]x J_pk, from the suffix sums F_k = sum_{e_p > k} f_p
+    and N_k = sum_{e_p > k} f_p (x_p - C_{k+1})^T:
+        A_k = -[F_k]x R_k D_k + (N_k^T - tr(N_k) I) Theta_k - sum_{e_p = k} [f_p]x R_k D_k(t_p);
+    diagonal block k: the Hessian in omega_k of R_k^T F_k . p_k(l_k) + sum_{e_p > k} R_k^T f_p . Q_k y_p
+    + sum_{e_p = k} R_k^T f_p . p_k(t_p) (y_p = R_{k+1}^T (x_p - C_{k+1}) fixed).  Symmetric exactly (each
+    off-diagonal block written once and transposed).  Strands go ``chunk`` at a time, grouped by length.
 
-    clothoid = isinstance(helix, cl.SuperClothoid)
-    mod = cl if clothoid else sh
-    extra = 1 if clothoid else 0  # a clothoid's dofs are its N + 1 nodes
+    Super Space Clothoids: central differences of the exact generalized force
+    (contact.jacobian.point_forces_generalized), a step of ``rotation_step`` radians per node (truncation
+    O(step^2), round-off O(eps / step), about 1e-10 relative), symmetrised, at most ``chunk_dofs`` perturbed
+    copies at once (:func:`_clothoid_load_hessians`).  (The same differences for Super-Helices are the test
+    oracle tests/reference/stability.py.)"""
     strands = np.asarray(strands, dtype=np.int64)
     point_strand = np.asarray(point_strand, dtype=np.int64)
     order = np.argsort(point_strand, kind="stable")
-    ps, pss, pf = point_strand[order], np.asarray(point_s, float)[order], np.asarray(point_force, float)[order]
+    ps, pss, pf = point_strand[order], np.asarray(point_s, float)[order], np.asarray(point_force, float).reshape(-1, 3)[order]
+    if isinstance(helix, cl.SuperClothoid):
+        return _clothoid_load_hessians(helix, strands, ps, pss, pf, rotation_step, chunk_dofs)
+    out = [None] * len(strands)
+    by_length = np.argsort(helix.n_elements[strands], kind="stable")  # similar lengths together: less padding
+    for start in range(0, len(strands), chunk):
+        pos = by_length[start:start + chunk]
+        ids = strands[pos]
+        sub = helix.subset(ids)
+        lo = np.searchsorted(ps, ids, "left")
+        hi = np.searchsorted(ps, ids, "right")
+        count = hi - lo
+        local = np.repeat(np.arange(len(ids)), count)
+        pidx = np.repeat(lo, count) + (np.arange(len(local)) - np.repeat(np.cumsum(count) - count, count))
+        full = sh.point_load_hessian(sub, local, pss[pidx], pf[pidx])
+        for i, p in enumerate(pos):
+            n = 3 * int(sub.n_elements[i])
+            out[p] = full[i, :n, :n].copy()
+    return out
+
+
+def _clothoid_load_hessians(helix: cl.SuperClothoid, strands, ps, pss, pf, rotation_step: float,
+                            chunk_dofs: int) -> list:
+    """contact_load_hessians for Super Space Clothoids (points sorted by strand): central differences of
+    point_forces_generalized, a step of rotation_step / (mean length of the node's elements) per node dof."""
+    from .contact.jacobian import point_forces_generalized
+
     out = [None] * len(strands)
     start = 0
     while start < len(strands):
         stop, copies = start, 0
-        while stop < len(strands) and (copies == 0 or copies + 6 * (helix.n_elements[strands[stop]] + extra)
+        while stop < len(strands) and (copies == 0 or copies + 6 * (helix.n_elements[strands[stop]] + 1)
                                        <= chunk_dofs):
-            copies += 6 * (int(helix.n_elements[strands[stop]]) + extra)
+            copies += 6 * (int(helix.n_elements[strands[stop]]) + 1)
             stop += 1
         ids = strands[start:stop]
         sub = helix.subset(ids)
-        N = sub.max_elements + extra
+        N = sub.max_elements + 1
         owner, signs, dofs = [], [], []
         for i in range(len(ids)):
-            n = 3 * (int(sub.n_elements[i]) + extra)
+            n = 3 * (int(sub.n_elements[i]) + 1)
             owner.append(np.full(2 * n, i))
             signs.append(np.repeat([1.0, -1.0], n))
             dofs.append(np.tile(np.arange(n), 2))
         owner, signs, dofs = np.concatenate(owner), np.concatenate(signs), np.concatenate(dofs)
         elem, comp = dofs // 3, dofs % 3
-        if clothoid:  # node i: the mean length of its (one or two) elements
-            lpad = np.concatenate([np.zeros((len(ids), 1)), sub.lengths, np.zeros((len(ids), 1))], axis=1)
-            both = lpad[:, :-1] + lpad[:, 1:]
-            nadj = (lpad[:, :-1] > 0).astype(float) + (lpad[:, 1:] > 0)
-            step = rotation_step / (both / np.maximum(nadj, 1.0))[owner, elem]
-        else:
-            step = rotation_step / sub.lengths[owner, elem]
+        # node i: the mean length of its (one or two) elements
+        lpad = np.concatenate([np.zeros((len(ids), 1)), sub.lengths, np.zeros((len(ids), 1))], axis=1)
+        both = lpad[:, :-1] + lpad[:, 1:]
+        nadj = (lpad[:, :-1] > 0).astype(float) + (lpad[:, 1:] > 0)
+        step = rotation_step / (both / np.maximum(nadj, 1.0))[owner, elem]
         q = sub.curvatures[owner].copy()
         q[np.arange(len(owner)), elem, comp] += signs * step
         copies_helix = type(sub)(sub.root_positions[owner], sub.root_frames[owner], sub.lengths[owner], q,
@@ -543,11 +572,11 @@ def contact_load_hessians(helix: sh.SuperHelix, strands, point_strand, point_s, 
         first = np.repeat(lo[owner], count)
         within = np.arange(len(copy_of_point)) - np.repeat(np.cumsum(count) - count, count)
         pidx = first + within
-        g = point_forces_generalized(copies_helix, mod.kinematics(copies_helix), copy_of_point, pss[pidx], pf[pidx])
+        g = point_forces_generalized(copies_helix, cl.kinematics(copies_helix), copy_of_point, pss[pidx], pf[pidx])
         g = g.reshape(len(owner), 3 * N)
         pos = 0
         for i in range(len(ids)):
-            n = 3 * (int(sub.n_elements[i]) + extra)
+            n = 3 * (int(sub.n_elements[i]) + 1)
             plus, minus = g[pos:pos + n, :n], g[pos + n:pos + 2 * n, :n]
             h = step[pos:pos + n]
             D = ((plus - minus) / (2.0 * h[:, None])).T  # column k: d g / d q_k

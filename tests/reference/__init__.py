@@ -4,5 +4,5 @@ replaced and reproduce, bit for bit or to round-off, and that only the tests (an
 The tests import them as ``reference.<module>`` (pytest puts tests/ on sys.path); a bench adds
 tests/ to sys.path first.  One module per groomtool package: ``reference.contact``,
 ``reference.fit``, ``reference.rods``, ``reference.solvers``, ``reference.equilibrium`` (stability and
-inversion).
+inversion), ``reference.stability`` (the finite-difference contact load Hessian).
 """

@@ -22,6 +22,8 @@ Derivatives (exact, explicit):
   m_{k+1} = L - S_{k+1} and X_{k+1} = int_{s > S_{k+1}} (C(s) - C_{k+1}) ds.
 - dF/dq: off-diagonal blocks dF_j/domega_k = -rhoS Theta_j^T [g]x G_k (j < k), diagonal blocks
   the Hessian of rhoS u . (P_j + m_{j+1} p_j + Q_j Y_j) in omega_j (u = R_j^T g, Y_j = R_{j+1}^T X_{j+1}).
+- point (dead) loads f_p at s_p: the Hessian of sum_p f_p . C(s_p) has the same form, blocks Theta_j^T A_k
+  (j < k) with A_k from suffix sums of the loads beyond element k (:func:`point_load_hessian_parts`).
 """
 
 from __future__ import annotations
@@ -716,6 +718,164 @@ def assemble_gravity_jacobian(U, G, diag, out):
                 for k in range(r + 1, N):
                     for b in range(3):
                         out[s, row, 3 * k + b] = u0 * G[s, k, 0, b] + u1 * G[s, k, 1, b] + u2 * G[s, k, 2, b]
+
+
+# --------------------------------------------------------------------------- point (dead) loads: the Hessian
+def point_load_hessian_parts(helix: SuperHelix, strand, s, f, kin: Kinematics | None = None):
+    """The generators of the Hessian in q of Phi = sum_p f_p . C(s_p; q) (world point loads f_p at fixed arc
+    lengths s_p on strands ``strand``), each (S, N, 3, 3), in the form of :func:`gravity_force_jacobian_parts`:
+    block (j, k) = U_j A_k for j < k (U_j = Theta_j^T), block (k, j) its transpose, diag_k on the diagonal.
+
+    With J_pk = dC(s_p)/domega_k (R_k D_k - [x_p - C_{k+1}]x Theta_k beyond element k, R_k D_k(t_p) inside it)
+    and dg_k/domega_j = sum_p J_pk^T [f_p]x Theta_j for j < k (a change of omega_j moves everything beyond
+    S_{j+1} rigidly, rotating J_pk by Theta_j domega_j):
+
+        A_k    = -[F_k]x R_k D_k + (N_k^T - tr(N_k) I) Theta_k - sum_{e_p = k} [f_p]x R_k D_k(t_p),
+        diag_k = Hess_omega_k [ u . Psi_1(l_k) e0 + sum_c M[:, c] . Psi_0(l_k) e_c + sum_{e_p = k} u_p . Psi_1(t_p) e0 ]
+
+    F_k = sum_{e_p > k} f_p, N_k = sum_{e_p > k} f_p (x_p - C_{k+1})^T (suffix sums from the tip), u = R_k^T F_k,
+    M = R_k^T N_k R_{k+1}, u_p = R_k^T f_p (e_p, t_p: the element and local parameter of s_p, as
+    :func:`locate`; a load at a node S_k belongs to element k with t = 0).  Each diagonal term is a form
+    u . (alpha I + beta W + gamma W^2) v (:func:`_form_hessian_add`), at the partial length t_p for the loads
+    inside the element.  O(S N + P), one compiled pass (:func:`_point_load_hessian_kernel`)."""
+    kin = kin if kin is not None else kinematics(helix)
+    l = np.ascontiguousarray(helix.lengths, dtype=np.float64)
+    S, N = l.shape
+    c, dc, ddc = c_table(l, kin.z, order=2)
+    U = np.zeros((S, N, 3, 3))
+    A = np.zeros((S, N, 3, 3))
+    diag = np.zeros((S, N, 3, 3))
+    strand = np.ascontiguousarray(strand, dtype=np.int64)
+    elem, t = locate(helix, strand, s)
+    _point_load_hessian_kernel(l, np.ascontiguousarray(helix.curvatures, dtype=np.float64), np.ascontiguousarray(kin.z),
+                               np.ascontiguousarray(c), np.ascontiguousarray(dc), np.ascontiguousarray(ddc),
+                               np.ascontiguousarray(kin.C), np.ascontiguousarray(kin.R), np.ascontiguousarray(kin.D),
+                               np.ascontiguousarray(kin.Theta), helix.n_elements, strand,
+                               np.ascontiguousarray(elem, dtype=np.int64), np.ascontiguousarray(t, dtype=np.float64),
+                               np.ascontiguousarray(f, dtype=np.float64).reshape(-1, 3), U, A, diag)
+    return U, A, diag
+
+
+def point_load_hessian(helix: SuperHelix, strand, s, f, kin: Kinematics | None = None) -> np.ndarray:
+    """The Hessian in q of sum_p f_p . C(s_p; q) per strand, (S, 3N, 3N), symmetric
+    (:func:`point_load_hessian_parts` assembled by :func:`assemble_gravity_jacobian`; zero on padding)."""
+    U, A, diag = point_load_hessian_parts(helix, strand, s, f, kin)
+    S, N = helix.lengths.shape
+    full = np.empty((S, 3 * N, 3 * N))
+    assemble_gravity_jacobian(U, A, diag, full)
+    return full
+
+
+@njit(cache=True)
+def _point_load_hessian_kernel(l, w, z, c, dc, ddc, C, R, D, Theta, n_elements, strand, elem, t, f, U, A, diag):
+    """Bin the loads per element (force, f (x - C_0)^T, the own-element blocks of A and diag), then one pass
+    from each strand's tip with the suffix sums F_k, N_k (point_load_hessian_parts)."""
+    S, N = l.shape
+    Fe = np.zeros((S, N, 3))
+    Ne = np.zeros((S, N, 3, 3))  # sum_{e_p = e} f_p (x_p - C_0)^T
+    buf = np.empty((3, 5))
+    p = np.empty(3)
+    x = np.empty(3)
+    Dt = np.empty((3, 3))
+    RD = np.empty((3, 3))
+    wj = np.empty(3)
+    up = np.empty(3)
+    e0 = np.zeros(3)
+    e0[0] = 1.0
+    for i in range(strand.shape[0]):
+        k, e, ti = strand[i], elem[i], t[i]
+        if e >= n_elements[k]:  # a strand without elements
+            continue
+        w0, w1, w2 = w[k, e, 0], w[k, e, 1], w[k, e, 2]
+        zz = w0 * w0 + w1 * w1 + w2 * w2
+        t2 = ti * ti
+        _f_point(zz * t2, 2, buf)
+        c2, c3 = t2 * buf[0, 2], t2 * ti * buf[0, 3]
+        dc2, dc3 = t2 * t2 * buf[1, 2], t2 * t2 * ti * buf[1, 3]
+        ddc2, ddc3 = t2 * t2 * t2 * buf[2, 2], t2 * t2 * t2 * ti * buf[2, 3]
+        # the point relative to the root: x - C_0 = (C_e - C_0) + R_e p(t)
+        p[0] = ti + c3 * (w0 * w0 - zz)
+        p[1] = c2 * w2 + c3 * w0 * w1
+        p[2] = -c2 * w1 + c3 * w0 * w2
+        f0, f1, f2 = f[i, 0], f[i, 1], f[i, 2]
+        for a in range(3):
+            x[a] = C[k, e, a] - C[k, 0, a] + R[k, e, a, 0] * p[0] + R[k, e, a, 1] * p[1] + R[k, e, a, 2] * p[2]
+            up[a] = R[k, e, 0, a] * f0 + R[k, e, 1, a] * f1 + R[k, e, 2, a] * f2
+            wj[a] = w[k, e, a]
+        Fe[k, e, 0] += f0
+        Fe[k, e, 1] += f1
+        Fe[k, e, 2] += f2
+        for a in range(3):
+            for b in range(3):
+                Ne[k, e, a, b] += f[i, a] * x[b]
+        # own-element block of A: -[f]x R_e D(t); ([f]x M)[:, b] = f x M[:, b]
+        _e0_jacobian(c2, dc2, c3, dc3, w0, w1, w2, zz, Dt)
+        for a in range(3):
+            for b in range(3):
+                RD[a, b] = R[k, e, a, 0] * Dt[0, b] + R[k, e, a, 1] * Dt[1, b] + R[k, e, a, 2] * Dt[2, b]
+        for b in range(3):
+            A[k, e, 0, b] -= f1 * RD[2, b] - f2 * RD[1, b]
+            A[k, e, 1, b] -= f2 * RD[0, b] - f0 * RD[2, b]
+            A[k, e, 2, b] -= f0 * RD[1, b] - f1 * RD[0, b]
+        # own-element diagonal term: the Hessian of u_p . Psi_1(t) e0
+        _form_hessian_add(1.0, c2, dc2, ddc2, c3, dc3, ddc3, wj, zz, up, e0, diag[k, e])
+    F = np.empty(3)
+    Nk = np.empty((3, 3))
+    Nr = np.empty((3, 3))
+    T = np.empty((3, 3))
+    M = np.empty((3, 3))
+    RN = np.empty((3, 3))
+    u = np.empty(3)
+    col = np.empty(3)
+    ec = np.empty(3)
+    for s in range(S):
+        F[:] = 0.0
+        Nr[:, :] = 0.0
+        for j in range(n_elements[s] - 1, -1, -1):
+            # N_k = sum_{e_p > k} f_p (x_p - C_{k+1})^T = Nr - F (C_{k+1} - C_0)^T
+            for a in range(3):
+                for b in range(3):
+                    Nk[a, b] = Nr[a, b] - F[a] * (C[s, j + 1, b] - C[s, 0, b])
+            tr = Nk[0, 0] + Nk[1, 1] + Nk[2, 2]
+            for a in range(3):
+                for b in range(3):
+                    T[a, b] = Nk[b, a] - (tr if a == b else 0.0)
+            for a in range(3):
+                for b in range(3):
+                    RD[a, b] = R[s, j, a, 0] * D[s, j, 0, b] + R[s, j, a, 1] * D[s, j, 1, b] + R[s, j, a, 2] * D[s, j, 2, b]
+            for b in range(3):
+                for a in range(3):
+                    A[s, j, a, b] += T[a, 0] * Theta[s, j, 0, b] + T[a, 1] * Theta[s, j, 1, b] + T[a, 2] * Theta[s, j, 2, b]
+                A[s, j, 0, b] -= F[1] * RD[2, b] - F[2] * RD[1, b]
+                A[s, j, 1, b] -= F[2] * RD[0, b] - F[0] * RD[2, b]
+                A[s, j, 2, b] -= F[0] * RD[1, b] - F[1] * RD[0, b]
+            for a in range(3):
+                for b in range(3):
+                    U[s, j, a, b] = Theta[s, j, b, a]
+            # diagonal: u . Psi_1(l) e0 with u = R_j^T F, and sum_c M[:, c] . Psi_0(l) e_c with M = R_j^T N R_{j+1}
+            for a in range(3):
+                u[a] = R[s, j, 0, a] * F[0] + R[s, j, 1, a] * F[1] + R[s, j, 2, a] * F[2]
+                wj[a] = w[s, j, a]
+            for a in range(3):
+                for b in range(3):
+                    RN[a, b] = R[s, j, 0, a] * Nk[0, b] + R[s, j, 1, a] * Nk[1, b] + R[s, j, 2, a] * Nk[2, b]
+            for a in range(3):
+                for b in range(3):
+                    M[a, b] = RN[a, 0] * R[s, j + 1, 0, b] + RN[a, 1] * R[s, j + 1, 1, b] + RN[a, 2] * R[s, j + 1, 2, b]
+            zj = z[s, j]
+            _form_hessian_add(1.0, c[2, s, j], dc[2, s, j], ddc[2, s, j], c[3, s, j], dc[3, s, j], ddc[3, s, j],
+                              wj, zj, u, e0, diag[s, j])
+            for cc in range(3):
+                for a in range(3):
+                    col[a] = M[a, cc]
+                    ec[a] = 1.0 if a == cc else 0.0
+                _form_hessian_add(1.0, c[1, s, j], dc[1, s, j], ddc[1, s, j], c[2, s, j], dc[2, s, j], ddc[2, s, j],
+                                  wj, zj, col, ec, diag[s, j])
+            # element j joins the loads beyond j - 1
+            for a in range(3):
+                F[a] += Fe[s, j, a]
+                for b in range(3):
+                    Nr[a, b] += Ne[s, j, a, b]
 
 
 def mass_matrix(helix: SuperHelix, linear_density: float, kin: Kinematics | None = None, order: int = 4):
