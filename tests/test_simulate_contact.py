@@ -7,6 +7,8 @@
 - contact bookkeeping: matching, gaps, normal-velocity targets.
 """
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import trimesh
@@ -201,6 +203,33 @@ def test_a_step_at_rest_has_the_free_rates_and_contact_problem_of_a_new_assembly
     b_fresh = fresh.problem.b.reshape(-1, 3) * fresh.r_scale
     assert np.abs(b_kept - b_fresh).max() <= 1e-6 * np.abs(b_fresh).max()
     assert kept.problem.rho() is sim._at_rest.system.problem.rho()  # W's cached data shared, not rebuilt
+
+
+@pytest.mark.parametrize("damping", [(0.0, 0.0), (2.0, 1e-3)])
+def test_a_step_at_rest_without_mass_matrices_is_the_assembled_step(damping):
+    """Simulator._at_rest_system keeps no M: v_free = v + Mhat^-1 (h (F - K (q - q0) - A) - (Mhat - M) v) with
+    (Mhat - M) v from K, the dF/dq generators, the unstable-mode corrections C and (with mass damping, a != 1) Mhat
+    itself.  At the assembly's own curvatures it is the assembled step to round-off: strands rising against
+    gravity (every one needs a C), random rates, velocity terms on, with and without damping."""
+    n = 12
+    roots = np.zeros((3, 3))
+    roots[:, 0] = [0.0, 0.01, 0.02]
+    frames = np.array([frame(np.array([0.1 * k, 0.0, 1.0]) / np.linalg.norm([0.1 * k, 0.0, 1.0]), [0, 1, 0])
+                       for k in range(3)])
+    rng = np.random.default_rng(0)
+    helix = sh.SuperHelix(roots, frames, np.full((3, n), 0.05), 0.3 * rng.normal(size=(3, n, 3)))
+    material = Material(young_modulus=1e4)
+    rest = helix.curvatures + 0.1 * rng.normal(size=helix.curvatures.shape)
+    rates = 0.5 * rng.normal(size=helix.curvatures.shape)
+    params = dict(contacts="none", mass_damping=damping[0], stiffness_damping=damping[1])
+    sim = Simulator(helix, rest, material, GRAVITY, params=SimulationParams(reuse_rotation=1e-7, **params),
+                    initial_rates=rates)
+    fresh = sim.assemble()
+    assert sim._at_rest is not None and sim._factors.corrected.all()
+    fresh = replace(fresh, v_free=fresh.v_free.copy())
+    kept = sim.assemble()  # the same state: at rest
+    assert sim.reused_steps == 1
+    np.testing.assert_allclose(kept.v_free, fresh.v_free, rtol=0, atol=1e-11 * np.abs(fresh.v_free).max())
 
 
 # --------------------------------------------------------------------------- bookkeeping

@@ -61,12 +61,12 @@ from .rods import dynamics as dyn
 from .rods import superhelix as sh
 from .simulate_contacts import (ContactTracker, contact_gaps, match_contacts,  # noqa: F401 (re-exported)
                                 normal_velocity_targets)
-from .simulate_linalg import StepCorrections, StrandFactors, factor_step_matrix, moved_dofs, strand_chunks
+from .simulate_linalg import (StepCorrections, StrandFactors, factor_step_matrix, moved_dofs, step_difference_apply,
+                              strand_chunks)
 from .simulate_motion import HeadMotion
 from .simulate_motion import rigid_motion as _rigid_motion  # noqa: F401 (re-exported)
 
 CONTACT_MODES = ("none", "head", "all")
-REUSE_MAX_BYTES = 1 << 30  # the mass matrices a groom at rest keeps (Simulator._keeps_inertia); beyond, no reuse
 
 
 # --------------------------------------------------------------------------- parameters
@@ -87,8 +87,8 @@ class SimulationParams:
     scaled down (counted in the result's stats).  detection_skin (m, None: the contact radius): the
     contact set of a detection pass is kept while no sample moved by more than half of it
     (simulate_contacts.py); 0 detects every step.  reuse_rotation (rad, 0: off): a Super-Helix groom at rest
-    (static head; no element turned by more than this since the last assembly) keeps that assembly's M,
-    factorised Mhat, contacts and H (Simulator._at_rest_system).  solver, solver_tolerance, max_sweeps,
+    (static head; no element turned by more than this since the last assembly) keeps that assembly's
+    factorised Mhat, A, dF/dq generators, contacts and H (Simulator._at_rest_system; no M).  solver, solver_tolerance, max_sweeps,
     solver_symmetric and solver_anderson: the Coulomb solve of each step (solver_symmetric: forward + backward
     sweeps; solver_anderson: the Anderson memory, 0 none).
     """
@@ -189,11 +189,13 @@ class StepSystem:
 @dataclass
 class AtRestSystem:
     """What a step at rest keeps from the last full assembly (Simulator._at_rest_system): the curvatures it was
-    built at, the mass matrices M and velocity terms A per chunk of strands, and its system (factors, contacts,
-    H, the contact problem's W)."""
+    built at, its velocity terms A, the generators of its dF/dq (what Mhat holds besides M, with K and the kept
+    unstable-mode corrections: no mass matrix is kept) and its system (factors, contacts, H, the contact
+    problem's W)."""
 
     curvatures: np.ndarray
-    inertia: list  # [(first, stop, M (chunk, n, n), A (chunk, N_c, 3) or None)]
+    velocity_terms: np.ndarray | None  # A (S, N, 3), None: dropped
+    gravity_parts: tuple | None  # (U, G, Dg) of superhelix.gravity_force_jacobian_parts, None: explicit gravity
     system: StepSystem
 
 
@@ -270,7 +272,7 @@ class Simulator:
         self._corrections = StepCorrections(helix.n_strands) if self.params.keep_step_corrections else None
         self._factors = None  # the step's Cholesky factors (StrandFactors), overwritten by the next step
         self._at_rest: AtRestSystem | None = None  # the last assembly, while the groom stays at rest
-        self._inertia_kept = None  # the M and A of the assembly under way, for _at_rest (_keeps_inertia)
+        self._kept = None  # (A, dF/dq generators) of the assembly under way, for _at_rest (_keeps_assembly)
         self.reused_steps = 0  # steps that reused the last assembly (_at_rest_system)
         self._chunks = strand_chunks(self._dof_blocks)
         self._contacts_on = self.params.contacts == "all" or (self.params.contacts == "head" and head is not None)
@@ -331,17 +333,17 @@ class Simulator:
         dynamics = self._clothoid_dynamics if self.clothoid else self._helix_dynamics
         helix, kin, v_free, t0 = dynamics(st, pose, t0)
         system = self._contact_system(StepSystem(helix=helix, kin=kin, factors=self._factors, v_free=v_free), pose, t0)
-        if self._inertia_kept is not None:
-            self._at_rest = AtRestSystem(st.curvatures.copy(), self._inertia_kept, system)
-            self._inertia_kept = None
+        if self._kept is not None:
+            kept_all = self._corrections is not None or np.all(self._factors.correction_kept)
+            if kept_all:
+                self._at_rest = AtRestSystem(st.curvatures.copy(), *self._kept, system)
+            self._kept = None
         return system
 
-    def _keeps_inertia(self, pose) -> bool:
-        """Whether this assembly keeps M and A for the steps at rest after it: params.reuse_rotation on, a static
-        head, Super-Helices, and the mass matrices within REUSE_MAX_BYTES."""
-        if not (self.params.reuse_rotation > 0) or pose.moving or self.clothoid:
-            return False
-        return sum((b - a) * (3 * int(self.n_elements[a:b].max())) ** 2 * 8 for a, b in self._chunks) <= REUSE_MAX_BYTES
+    def _keeps_assembly(self, pose) -> bool:
+        """Whether this assembly is kept for the steps at rest after it: params.reuse_rotation on, a static head,
+        Super-Helices (what is kept is small: A and the generators of dF/dq, O(N) per strand)."""
+        return bool(self.params.reuse_rotation > 0) and not pose.moving and not self.clothoid
 
     def _still_at_rest(self, pose) -> bool:
         """Every element within reuse_rotation of its orientation at the last assembly: an element's frame has
@@ -356,8 +358,13 @@ class Simulator:
         return bool(turned < self.params.reuse_rotation)
 
     def _at_rest_system(self, st: State, pose, t0: float) -> StepSystem:
-        """A step at rest (_still_at_rest): the kept M, A, factorised Mhat, contacts and H of the last assembly,
-        with this step's F(q), K (q - q0) and rates:  v_free = Mhat^-1 (M v + h (F - K (q - q0) - A)),
+        """A step at rest (_still_at_rest): the kept A, factorised Mhat, dF/dq generators, contacts and H of the last
+        assembly, with this step's F(q), K (q - q0) and rates.  v_free = Mhat^-1 (M v + h (F - K (q - q0) - A))
+        written without M (none is kept, so any groom can reuse, harolongo's 1-3 GB of mass matrices included):
+
+            v_free = v + Mhat^-1 (h (F - K (q - q0) - A) - (Mhat - M) v),
+
+        (Mhat - M) v from K, the dF/dq generators and the kept corrections (simulate_linalg.step_difference_apply).
         b = H v_free + w.  Exact up to the change of M, A, Mhat and H over reuse_rotation (relative ~1e-7)."""
         p = self.params
         h = p.dt
@@ -367,12 +374,17 @@ class Simulator:
         force = sh.gravity_force(helix, self.inertia.linear, self.gravity, kin) - self.K * (st.curvatures - self.rest)
         if self.external is not None:
             force = force + self.external
+        if self._at_rest.velocity_terms is not None:
+            force = force - self._at_rest.velocity_terms
         S, N = self.lengths.shape
-        rhs = np.zeros((S, 3 * N))
-        for a, b, M, A in self._at_rest.inertia:
-            rhs[a:b, :M.shape[1]] = _chunk_rhs(M, A, force, st.rates, a, b, h)
+        alpha = p.mass_damping + p.air_drag / self.inertia.linear
+        rhs = h * force - step_difference_apply(
+            kept.factors, self._corrections, st.rates, a_scale=1.0 + h * alpha, stiffness=self.K,
+            k_scale=h * h + h * p.stiffness_damping, gravity_parts=self._at_rest.gravity_parts,
+            b_scale=-h * h if p.implicit_gravity else 0.0)
+        rhs = rhs.reshape(S, 3 * N)
         rhs[~np.repeat(self.mask, 3, axis=1)] = 0.0
-        v_free = kept.factors.solve(rhs).reshape(S, N, 3)
+        v_free = st.rates + kept.factors.solve(rhs).reshape(S, N, 3)
         system = StepSystem(helix=helix, kin=kin, factors=kept.factors, v_free=v_free)
         self.reused_steps += 1
         t0 = self._time("at_rest", t0)
@@ -407,7 +419,8 @@ class Simulator:
         rhs = np.zeros((S, 3 * N))
         if self._factors is None:
             self._factors = StrandFactors(self._dof_blocks)
-        self._inertia_kept = [] if self._keeps_inertia(pose) else None
+        keep = self._keeps_assembly(pose)
+        A_all = np.zeros_like(st.curvatures) if keep and with_A else None
         t0 = self._time("dynamics", t0)
         # per chunk of strands (M never holds a whole large groom): M and A, then
         # rhs = M v + h (F - K (q - q0) - A) and Mhat = (1 + h alpha) M + (h^2 + h beta) K - h^2 dF/dq factorised
@@ -417,8 +430,8 @@ class Simulator:
             n = M.shape[1]
             Nc = n // 3
             rhs[a:b, :n] = _chunk_rhs(M, A, force, st.rates, a, b, h)
-            if self._inertia_kept is not None:
-                self._inertia_kept.append((a, b, M.copy(), A))
+            if A_all is not None and A is not None:
+                A_all[a:b, :Nc] = A
             t0 = self._time("dynamics", t0)
             dF = tuple(x[a:b, :Nc] for x in parts) if parts is not None else M
             _, modified = factor_step_matrix(M, dF, self.n_elements[a:b], self._corrections, a_scale=1.0 + h * alpha,
@@ -428,6 +441,7 @@ class Simulator:
             t0 = self._time("factor", t0)
         rhs[~np.repeat(self.mask, 3, axis=1)] = 0.0
         v_free = self._factors.solve(rhs).reshape(S, N, 3)
+        self._kept = (A_all, parts) if keep else None
         t0 = self._time("factor", t0)
         return helix, kin, v_free, t0
 

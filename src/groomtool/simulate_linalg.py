@@ -111,6 +111,10 @@ class StrandFactors:
         self.ptr = np.zeros(len(self.sizes) + 1, dtype=np.int64)
         np.cumsum(self.sizes * self.sizes, out=self.ptr[1:])
         self.data = np.zeros(int(self.ptr[-1]))
+        # per strand: whether its factor includes an unstable-mode correction C (factor_step_matrix), and whether
+        # that C is kept in the StepCorrections given (False: a fresh C made without one, not stored anywhere)
+        self.corrected = np.zeros(len(self.sizes), dtype=bool)
+        self.correction_kept = np.ones(len(self.sizes), dtype=bool)
 
     def factor(self, s: int) -> np.ndarray:
         """The stored (tip-first, lower triangular) factor L of P Mhat_s P."""
@@ -122,6 +126,13 @@ class StrandFactors:
         rhs = np.ascontiguousarray(rhs, dtype=np.float64)
         out = rhs.copy()
         _solve_kernel(self.data, self.ptr, self.sizes, rhs, out)
+        return out
+
+    def apply(self, x: np.ndarray) -> np.ndarray:
+        """Mhat x = P L L^T P x per strand; x (S, n_pad) padded (padding rows are copied: identity)."""
+        x = np.ascontiguousarray(x, dtype=np.float64)
+        out = x.copy()
+        _apply_kernel(self.data, self.ptr, self.sizes, x, out)
         return out
 
     def leading_inverse(self, s: int, k: int) -> np.ndarray:
@@ -141,6 +152,24 @@ def _solve_kernel(data, ptr, sizes, rhs, out):
         x = _backward(L, y, n)
         for i in range(n):
             out[s, i] = x[n - 1 - i]
+
+
+@njit(cache=True)
+def _apply_kernel(data, ptr, sizes, x, out):
+    """out = P L L^T P x per strand (L stored tip first, P the reversal)."""
+    for s in range(sizes.shape[0]):
+        n = sizes[s]
+        L = data[ptr[s]:ptr[s + 1]].reshape(n, n)
+        y = np.zeros(n)
+        for i in range(n):  # y = L^T P x
+            xi = x[s, n - 1 - i]
+            for k in range(i + 1):
+                y[k] += L[i, k] * xi
+        for i in range(n):  # out = P L y
+            acc = 0.0
+            for k in range(i + 1):
+                acc += L[i, k] * y[k]
+            out[s, n - 1 - i] = acc
 
 
 @njit(cache=True)
@@ -270,6 +299,8 @@ def factor_step_matrix(A: np.ndarray, B, n_elements: np.ndarray,
     status = np.zeros(S, dtype=np.int64)
     _factor_kernel(np.ascontiguousarray(A), float(a_scale), Kd, float(k_scale), dense, U, G, Dg, float(b_scale),
                    n_elements, corr_start, corr, out.data, np.ascontiguousarray(out.ptr[first:first + S]), status)
+    out.corrected[first:first + S] = status > 0
+    out.correction_kept[first:first + S] = (status < 2) | (corrections is not None)
     for s in np.flatnonzero(status == 2):
         n = 3 * int(n_elements[s])
         a = a_scale * A[s, :n, :n] + np.diag(k_scale * Kd[s, :n])
@@ -320,6 +351,76 @@ def cho_inverse(L: np.ndarray, n: int) -> np.ndarray:
     out = inv + inv.T  # dpotri wrote the lower triangle; the upper one is L's zeros
     out.flat[:: n + 1] *= 0.5
     return out
+
+
+# --------------------------------------------------------------------------- the step matrix's parts, applied
+def step_difference_apply(factors: StrandFactors, corrections: StepCorrections | None, x: np.ndarray, *,
+                          a_scale: float, stiffness, k_scale: float, gravity_parts, b_scale: float) -> np.ndarray:
+    """(Mhat - M) x per strand without M, from the parts factor_step_matrix put into Mhat = a_scale M + k_scale K
+    + b_scale dF/dq + C (C on the strands ``factors.corrected``):
+
+        (Mhat - M) x = ((a_scale - 1) Mhat x + k_scale K x + b_scale dF/dq x + C x) / a_scale,
+
+    Mhat x from the factors (only when a_scale != 1), dF/dq x from the generators ``gravity_parts`` (U, G, Dg) of
+    superhelix.gravity_force_jacobian_parts in O(N) (None: b_scale 0), C from ``corrections``.  x and the result
+    (S, N, 3) padded (zero on padding); stiffness K (S, N, 3) diagonal."""
+    x = np.ascontiguousarray(x, dtype=np.float64)
+    S, N, _ = x.shape
+    n_elements = factors.sizes // 3
+    out = k_scale * np.asarray(stiffness, dtype=np.float64) * x
+    if gravity_parts is not None and b_scale != 0.0:
+        U, G, Dg = gravity_parts
+        _gravity_jacobian_apply(U, G, Dg, n_elements, b_scale, x, out)
+    if np.any(factors.corrected):
+        if corrections is None or not np.all(factors.correction_kept[factors.corrected]):
+            raise ValueError("a correction of the step matrix was not kept (StepCorrections)")
+        data, start = corrections.packed()
+        _corrections_apply(data, start, corrections.size, factors.corrected, x.reshape(S, 3 * N),
+                           out.reshape(S, 3 * N))
+    if a_scale != 1.0:
+        out += (a_scale - 1.0) * factors.apply(x.reshape(S, 3 * N)).reshape(S, N, 3)
+        out /= a_scale
+    return out
+
+
+@njit(cache=True)
+def _gravity_jacobian_apply(U, G, Dg, n_elements, scale, x, out):
+    """out += scale dF/dq x per strand, dF/dq with blocks U_j G_k (j < k), (U_k G_j)^T (j > k), Dg_j (j = k):
+    y_j = Dg_j x_j + U_j sum_{k>j} G_k x_k + G_j^T sum_{k<j} U_k^T x_k (prefix and suffix sums, O(N))."""
+    for s in range(x.shape[0]):
+        N = n_elements[s]
+        p0 = p1 = p2 = 0.0  # sum_{k<j} U_k^T x_k
+        for j in range(N):
+            x0, x1, x2 = x[s, j, 0], x[s, j, 1], x[s, j, 2]
+            for a in range(3):
+                out[s, j, a] += scale * (Dg[s, j, a, 0] * x0 + Dg[s, j, a, 1] * x1 + Dg[s, j, a, 2] * x2
+                                         + G[s, j, 0, a] * p0 + G[s, j, 1, a] * p1 + G[s, j, 2, a] * p2)
+            p0 += U[s, j, 0, 0] * x0 + U[s, j, 1, 0] * x1 + U[s, j, 2, 0] * x2
+            p1 += U[s, j, 0, 1] * x0 + U[s, j, 1, 1] * x1 + U[s, j, 2, 1] * x2
+            p2 += U[s, j, 0, 2] * x0 + U[s, j, 1, 2] * x1 + U[s, j, 2, 2] * x2
+        q0 = q1 = q2 = 0.0  # sum_{k>j} G_k x_k
+        for j in range(N - 1, -1, -1):
+            for a in range(3):
+                out[s, j, a] += scale * (U[s, j, a, 0] * q0 + U[s, j, a, 1] * q1 + U[s, j, a, 2] * q2)
+            x0, x1, x2 = x[s, j, 0], x[s, j, 1], x[s, j, 2]
+            q0 += G[s, j, 0, 0] * x0 + G[s, j, 0, 1] * x1 + G[s, j, 0, 2] * x2
+            q1 += G[s, j, 1, 0] * x0 + G[s, j, 1, 1] * x1 + G[s, j, 1, 2] * x2
+            q2 += G[s, j, 2, 0] * x0 + G[s, j, 2, 1] * x1 + G[s, j, 2, 2] * x2
+
+
+@njit(cache=True)
+def _corrections_apply(data, start, size, corrected, x, out):
+    """out[s, :n] += C_s x[s, :n] on the strands ``corrected`` (C_s n x n row-major at data[start[s]:])."""
+    for s in range(x.shape[0]):
+        if not corrected[s]:
+            continue
+        n = size[s]
+        o = start[s]
+        for i in range(n):
+            acc = 0.0
+            for k in range(n):
+                acc += data[o + i * n + k] * x[s, k]
+            out[s, i] += acc
 
 
 # --------------------------------------------------------------------------- H on the dofs the contacts move
