@@ -265,6 +265,8 @@ def _element_kernel(l, w, z, c, dc, Q, psi1, p, P, D, DP):
     buf = np.empty((3, 5))
     W = np.empty((3, 3))
     W2 = np.empty((3, 3))
+    _f_point(0.0, 1, buf)
+    f0_at_zero = buf[0, 0]
     S, N = l.shape
     for s in range(S):
         for j in range(N):
@@ -272,6 +274,23 @@ def _element_kernel(l, w, z, c, dc, Q, psi1, p, P, D, DP):
             w0, w1, w2 = w[s, j, 0], w[s, j, 1], w[s, j, 2]
             zz = w0 * w0 + w1 * w1 + w2 * w2
             z[s, j] = zz
+            if ti == 0.0:
+                # a zero-length element (the padding of shorter strands): what the general branch gives for l = 0
+                # (to the sign of zeros), without the series
+                c[0, s, j] = f0_at_zero
+                for n in range(1, 5):
+                    c[n, s, j] = 0.0
+                for n in range(5):
+                    dc[n, s, j] = 0.0
+                for a in range(3):
+                    p[s, j, a] = 0.0
+                    P[s, j, a] = 0.0
+                    for b in range(3):
+                        Q[s, j, a, b] = 1.0 if a == b else 0.0
+                        psi1[s, j, a, b] = 0.0
+                        D[s, j, a, b] = 0.0
+                        DP[s, j, a, b] = 0.0
+                continue
             t2 = ti * ti
             _f_point(zz * t2, 1, buf)
             tn = 1.0
