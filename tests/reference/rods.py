@@ -142,13 +142,29 @@ def kinematics_reference(helix: sh.SuperHelix) -> sh.Kinematics:
     return sh.Kinematics(helix, C, R, Q, p, P, D, DP, Theta, c, dc, z)
 
 
+def integrated_jacobians(helix: sh.SuperHelix, kin: sh.Kinematics):
+    """G_k = int_0^L dC/domega_k ds = R_k DP_k + m_{k+1} R_k D_k - [X_{k+1}]x Theta_k (S, N, 3, 3), plus m and X (batched
+    numpy; superhelix.gravity_force's kernel computes rhoS G_k^T g without forming G)."""
+    m, X, _ = sh._downstream_moments(helix, kin)
+    Rk = kin.R[:, :-1]
+    G = Rk @ kin.DP + m[..., None, None] * (Rk @ kin.D) - sh.skew(X) @ kin.Theta
+    return G, m, X
+
+
+def gravity_force_reference(helix: sh.SuperHelix, linear_density: float, gravity, kin: sh.Kinematics | None = None):
+    """F = rhoS G^T g from the batched integrated Jacobians (the original ``superhelix.gravity_force``)."""
+    kin = kin if kin is not None else sh.kinematics(helix)
+    G, _, _ = integrated_jacobians(helix, kin)
+    return linear_density * np.einsum("snab,a->snb", G, np.asarray(gravity, dtype=np.float64))
+
+
 def gravity_force_jacobian_reference(helix: sh.SuperHelix, linear_density: float, gravity,
                                      kin: sh.Kinematics | None = None):
     """dF/dq assembled with dense batched matmuls (the original ``superhelix.gravity_force_jacobian``)."""
     kin = kin if kin is not None else sh.kinematics(helix)
     g = np.asarray(gravity, dtype=np.float64)
     S, N = helix.lengths.shape
-    G, m, X = sh._integrated_jacobians(helix, kin)
+    G, m, X = integrated_jacobians(helix, kin)
     gx = sh.skew(g)
     # off-diagonal blocks, j < k: -rhoS Theta_j^T [g]x G_k, all (j, k) at once as one batched matmul
     left = np.einsum("sjba,bc->sjac", kin.Theta, gx).reshape(S, 3 * N, 3)  # rows (j, a): Theta_j^T [g]x

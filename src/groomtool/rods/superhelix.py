@@ -579,19 +579,49 @@ def gravity_potential(helix: SuperHelix, linear_density: float, gravity, kin: Ki
     return -linear_density * np.einsum("snk,k->s", integral, np.asarray(gravity, dtype=np.float64))
 
 
-def _integrated_jacobians(helix: SuperHelix, kin: Kinematics):
-    """G_k = int_0^L dC/domega_k ds (S, N, 3, 3), plus m and X."""
-    m, X, _ = _downstream_moments(helix, kin)
-    Rk = kin.R[:, :-1]
-    G = Rk @ kin.DP + m[..., None, None] * (Rk @ kin.D) - skew(X) @ kin.Theta
-    return G, m, X
-
-
 def gravity_force(helix: SuperHelix, linear_density: float, gravity, kin: Kinematics | None = None):
-    """F = -dV/dq = rhoS int (dC/dq)^T g ds, as (S, N, 3)."""
+    """F = -dV/dq = rhoS int (dC/dq)^T g ds = rhoS G_j^T g, as (S, N, 3), with the integrated Jacobians
+    G_j = R_j DP_j + m_{j+1} R_j D_j - [X_{j+1}]x Theta_j (:func:`_downstream_moments`' m and X):
+
+        F_j = rhoS (DP_j^T u_j + m_{j+1} D_j^T u_j + Theta_j^T (X_{j+1} x g)),   u_j = R_j^T g,
+
+    one compiled pass from the tip (:func:`_gravity_force_kernel`)."""
     kin = kin if kin is not None else kinematics(helix)
-    G, _, _ = _integrated_jacobians(helix, kin)
-    return linear_density * np.einsum("snab,a->snb", G, np.asarray(gravity, dtype=np.float64))
+    out = np.empty(helix.curvatures.shape)
+    _gravity_force_kernel(np.ascontiguousarray(helix.lengths, dtype=np.float64), kin.C, kin.R, kin.P, kin.D, kin.DP,
+                          kin.Theta, np.ascontiguousarray(gravity, dtype=np.float64), float(linear_density), out)
+    return out
+
+
+@njit(cache=True)
+def _gravity_force_kernel(l, C, R, P, D, DP, Theta, g, rho, out):
+    """:func:`gravity_force` per strand, j from the tip: m and m1 = int C ds of the elements beyond j,
+    X = m1 - m C_{j+1}; then element j joins them (int_element C ds = l_j C_j + R_j P_j)."""
+    S, N = l.shape
+    for s in range(S):
+        m = 0.0
+        m10 = m11 = m12 = 0.0
+        for j in range(N - 1, -1, -1):
+            X0 = m10 - m * C[s, j + 1, 0]
+            X1 = m11 - m * C[s, j + 1, 1]
+            X2 = m12 - m * C[s, j + 1, 2]
+            xg0 = X1 * g[2] - X2 * g[1]
+            xg1 = X2 * g[0] - X0 * g[2]
+            xg2 = X0 * g[1] - X1 * g[0]
+            u0 = R[s, j, 0, 0] * g[0] + R[s, j, 1, 0] * g[1] + R[s, j, 2, 0] * g[2]
+            u1 = R[s, j, 0, 1] * g[0] + R[s, j, 1, 1] * g[1] + R[s, j, 2, 1] * g[2]
+            u2 = R[s, j, 0, 2] * g[0] + R[s, j, 1, 2] * g[1] + R[s, j, 2, 2] * g[2]
+            for b in range(3):
+                acc = (DP[s, j, 0, b] + m * D[s, j, 0, b]) * u0
+                acc += (DP[s, j, 1, b] + m * D[s, j, 1, b]) * u1
+                acc += (DP[s, j, 2, b] + m * D[s, j, 2, b]) * u2
+                acc += Theta[s, j, 0, b] * xg0 + Theta[s, j, 1, b] * xg1 + Theta[s, j, 2, b] * xg2
+                out[s, j, b] = rho * acc
+            lj = l[s, j]
+            m10 += lj * C[s, j, 0] + R[s, j, 0, 0] * P[s, j, 0] + R[s, j, 0, 1] * P[s, j, 1] + R[s, j, 0, 2] * P[s, j, 2]
+            m11 += lj * C[s, j, 1] + R[s, j, 1, 0] * P[s, j, 0] + R[s, j, 1, 1] * P[s, j, 1] + R[s, j, 1, 2] * P[s, j, 2]
+            m12 += lj * C[s, j, 2] + R[s, j, 2, 0] * P[s, j, 0] + R[s, j, 2, 1] * P[s, j, 1] + R[s, j, 2, 2] * P[s, j, 2]
+            m += lj
 
 
 def gravity_force_jacobian(helix: SuperHelix, linear_density: float, gravity, kin: Kinematics | None = None):
