@@ -275,6 +275,7 @@ class Simulator:
         self._kept = None  # (A, dF/dq generators) of the assembly under way, for _at_rest (_keeps_assembly)
         self.reused_steps = 0  # steps that reused the last assembly (_at_rest_system)
         self._chunks = strand_chunks(self._dof_blocks)
+        self._geometry = None  # (state, helix, kinematics) of the last state asked for (geometry())
         self._contacts_on = self.params.contacts == "all" or (self.params.contacts == "head" and head is not None)
         self._radius = self.params.contact_radius
         self.tracker: ContactTracker | None = None
@@ -311,6 +312,14 @@ class Simulator:
         pose = self.motion.pose(state.time)
         rod = cl.SuperClothoid if self.clothoid else sh.SuperHelix
         return rod(pose.roots, pose.frames, self.lengths, state.curvatures, self.n_elements)
+
+    def geometry(self) -> tuple[sh.SuperHelix, sh.Kinematics]:
+        """The strands at the current state and their kinematics, computed once per state (the step that follows a
+        state's tips and frames uses the same).  Super-Helices only."""
+        if self._geometry is None or self._geometry[0] is not self.state:
+            helix = self.helix()
+            self._geometry = (self.state, helix, sh.kinematics(helix))
+        return self._geometry[1], self._geometry[2]
 
     def contact_radius(self) -> float | None:
         return self._radius
@@ -369,8 +378,7 @@ class Simulator:
         p = self.params
         h = p.dt
         kept = self._at_rest.system
-        helix = sh.SuperHelix(pose.roots, pose.frames, self.lengths, st.curvatures, self.n_elements)
-        kin = sh.kinematics(helix)
+        helix, kin = self.geometry()
         force = sh.gravity_force(helix, self.inertia.linear, self.gravity, kin) - self.K * (st.curvatures - self.rest)
         if self.external is not None:
             force = force + self.external
@@ -405,8 +413,7 @@ class Simulator:
         """Super-Helices: M and A (compiled), F and the generators of dF/dq, the factorised Mhat and the free rates."""
         p = self.params
         h = p.dt
-        helix = sh.SuperHelix(pose.roots, pose.frames, self.lengths, st.curvatures, self.n_elements)
-        kin = sh.kinematics(helix)
+        helix, kin = self.geometry()
         with_A = p.velocity_terms or pose.moving
         F = sh.gravity_force(helix, self.inertia.linear, self.gravity, kin)
         parts = (sh.gravity_force_jacobian_parts(helix, self.inertia.linear, self.gravity, kin)
@@ -655,9 +662,12 @@ class Simulator:
 
     # ---------------------------------------------------------------- observables
     def tips(self, helix: sh.SuperHelix | None = None) -> np.ndarray:
-        """Tip positions (S, 3)."""
-        helix = helix or self.helix()
-        kin = cl.kinematics(helix, moments=False) if self.clothoid else sh.kinematics(helix)
+        """Tip positions (S, 3), of ``helix`` or of the current state."""
+        if helix is None and not self.clothoid:
+            helix, kin = self.geometry()
+        else:
+            helix = helix or self.helix()
+            kin = cl.kinematics(helix, moments=False) if self.clothoid else sh.kinematics(helix)
         return kin.C[np.arange(helix.n_strands), helix.n_elements]
 
     def energies(self) -> dict:
@@ -717,10 +727,10 @@ def simulate(helix: sh.SuperHelix, rest_curvatures, material: Material, gravity,
                 if not system.stats["solver_converged"]:
                     failed_steps.append(k)
                     failed_residuals.append(system.stats["solver_residual"])
-            h_now = sim.helix()
-            tips.append(sim.tips(h_now))
+            tips.append(sim.tips())
             if (k + 1) % every == 0 or k + 1 == steps:
-                frames.append(sim.model.sample(h_now, samples_per_frame_element)[0])
+                h_now, kin_now = (sim.helix(), None) if sim.clothoid else sim.geometry()
+                frames.append(sim.model.sample(h_now, samples_per_frame_element, kin=kin_now)[0])
                 times.append(sim.state.time)
             if callback is not None:
                 callback(sim, system)
