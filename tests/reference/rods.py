@@ -137,7 +137,7 @@ def kinematics_reference(helix: sh.SuperHelix) -> sh.Kinematics:
     C = np.empty((S, N + 1, 3))
     R = np.empty((S, N + 1, 3, 3))
     sh._chain(np.ascontiguousarray(helix.root_positions), np.ascontiguousarray(helix.root_frames),
-              np.ascontiguousarray(Q), np.ascontiguousarray(p), C, R)
+              np.ascontiguousarray(Q), np.ascontiguousarray(p), C, R, np.ascontiguousarray(helix.lengths, dtype=np.float64))
     Theta = R[:, :-1] @ psi1
     return sh.Kinematics(helix, C, R, Q, p, P, D, DP, Theta, c, dc, z)
 

@@ -233,9 +233,9 @@ def kinematics(helix: SuperHelix) -> Kinematics:
     _element_kernel(l, w, z, c, dc, Q, psi1, p, P, D, DP)
     C = np.empty((S, N + 1, 3))
     R = np.empty((S, N + 1, 3, 3))
-    _chain(np.ascontiguousarray(helix.root_positions), np.ascontiguousarray(helix.root_frames), Q, p, C, R)
+    _chain(np.ascontiguousarray(helix.root_positions), np.ascontiguousarray(helix.root_frames), Q, p, C, R, l)
     Theta = np.empty((S, N, 3, 3))
-    _theta_kernel(R, psi1, Theta)
+    _theta_kernel(R, psi1, Theta, l)
     return Kinematics(helix, C, R, Q, p, P, D, DP, Theta, c, dc, z)
 
 
@@ -327,11 +327,16 @@ def _element_kernel(l, w, z, c, dc, Q, psi1, p, P, D, DP):
 
 
 @njit(cache=True)
-def _theta_kernel(R, psi1, Theta):
-    """Theta_j = R_j Psi_1(l_j)."""
+def _theta_kernel(R, psi1, Theta, l):
+    """Theta_j = R_j Psi_1(l_j) (zero for a zero-length element: Psi_1(0) = 0)."""
     S, N = psi1.shape[0], psi1.shape[1]
     for s in range(S):
         for j in range(N):
+            if l[s, j] == 0.0:
+                for a in range(3):
+                    for b in range(3):
+                        Theta[s, j, a, b] = 0.0
+                continue
             for a in range(3):
                 for b in range(3):
                     Theta[s, j, a, b] = (R[s, j, a, 0] * psi1[s, j, 0, b] + R[s, j, a, 1] * psi1[s, j, 1, b]
@@ -339,8 +344,8 @@ def _theta_kernel(R, psi1, Theta):
 
 
 @njit(cache=True)
-def _chain(C0, R0, Q, p, C, R):
-    """C_{j+1} = C_j + R_j p_j, R_{j+1} = R_j Q_j for every strand."""
+def _chain(C0, R0, Q, p, C, R, l):
+    """C_{j+1} = C_j + R_j p_j, R_{j+1} = R_j Q_j for every strand (a zero-length element: p = 0, Q = I, copied)."""
     S, N = Q.shape[0], Q.shape[1]
     for s in range(S):
         for a in range(3):
@@ -348,6 +353,12 @@ def _chain(C0, R0, Q, p, C, R):
             for b in range(3):
                 R[s, 0, a, b] = R0[s, a, b]
         for j in range(N):
+            if l[s, j] == 0.0:
+                for a in range(3):
+                    C[s, j + 1, a] = C[s, j, a]
+                    for b in range(3):
+                        R[s, j + 1, a, b] = R[s, j, a, b]
+                continue
             for a in range(3):
                 acc = C[s, j, a]
                 for b in range(3):
