@@ -10,7 +10,8 @@ x_e = s_i(e) of each contact's force (Boyd et al. 2011, consensus form, over-rel
     s-step (per contact):  s_i = P_K( (rho_i sum_e z_e - b_i) / (2 gamma + n_i rho_i) ),   n_i: ends of contact i
     x-step (per strand):   (J_s D_s J_s^T + rho) x_s = rho w_s,  w_e = 2 s_i(e) - z_e,  by Woodbury
                            x_s = w_s - J_s M_s^-1 J_s^T w_s / rho,   M_s = D_s^-1 + J_s^T J_s / rho  (n_s x n_s,
-                           Cholesky factored ONCE: rho is fixed)
+                           Cholesky factored ONCE: rho is fixed; a run from a previous run's state on the same H
+                           keeps the factors of the strands whose D_s changed by a scalar: StrandSplit.reusing)
     update:                z_e += alpha (x_e - s_i(e))        (over-relaxed; z = x^ + lam, the scaled multiplier)
 
 (the Douglas-Rachford form of the consensus ADMM: x^ = alpha x + (1 - alpha) s, lam += x^ - s),
@@ -31,6 +32,7 @@ A^T s alone; docs/solvers.md section 12).  SOC law only.
 
 from __future__ import annotations
 
+import copy
 import math
 import time
 from dataclasses import dataclass, field
@@ -87,15 +89,21 @@ def _fill_ends(ptr, cols, dof_offsets, cend_ptr, end_contact, end_strand, end_p0
 
 
 @njit(cache=True, fastmath=_FM)
-def _accumulate_M(strand_ptr, ends_sorted, end_p0, end_p1, cols, vals, rho_end, dof_offsets, M_ptr, M):
-    """M_s += sum_{e on s} J_e^T J_e / rho_e (dense n_s x n_s, row-major at M[M_ptr[s]:])."""
-    S = strand_ptr.shape[0] - 1
-    for s in range(S):
+def _factor_strands(strands, strand_ptr, ends_sorted, end_p0, end_p1, cols, vals, rho_end, dof_offsets, D_data,
+                    D_ptr, D_is_diag, D_inv, L_ptr, L):
+    """For each strand s of ``strands``: M_s = D_s^-1 + sum_{e on s} J_e^T J_e / rho_e (dense n_s x n_s, row-major at
+    L[L_ptr[s]:]; D_s^-1 from D_data when diagonal, from D_inv (laid out like D_data) when dense), symmetrised, then
+    its Cholesky factor in place (lower, the upper triangle zeroed, as np.linalg.cholesky).  Returns the first strand
+    whose M_s is not positive definite, or -1."""
+    for q in range(strands.shape[0]):
+        s = strands[q]
         o = dof_offsets[s]
         n = dof_offsets[s + 1] - o
-        base = M_ptr[s]
-        for q in range(strand_ptr[s], strand_ptr[s + 1]):
-            e = ends_sorted[q]
+        base = L_ptr[s]
+        for k in range(n * n):
+            L[base + k] = 0.0
+        for qq in range(strand_ptr[s], strand_ptr[s + 1]):
+            e = ends_sorted[qq]
             w = 1.0 / rho_end[e]
             for p in range(end_p0[e], end_p1[e]):
                 a = cols[p] - o
@@ -104,7 +112,132 @@ def _accumulate_M(strand_ptr, ends_sorted, end_p0, end_p1, cols, vals, rho_end, 
                 va2 = vals[p, 2] * w
                 for p2 in range(end_p0[e], end_p1[e]):
                     c = cols[p2] - o
-                    M[base + a * n + c] += va0 * vals[p2, 0] + va1 * vals[p2, 1] + va2 * vals[p2, 2]
+                    L[base + a * n + c] += va0 * vals[p2, 0] + va1 * vals[p2, 1] + va2 * vals[p2, 2]
+        d0 = D_ptr[s]
+        if D_is_diag[s]:
+            for k in range(n):
+                L[base + k * n + k] += 1.0 / D_data[d0 + k]
+        else:
+            for k in range(n * n):
+                L[base + k] += D_inv[d0 + k]
+        for i in range(n):  # the lower triangle gets 0.5 (M + M^T), the upper one 0
+            for j in range(i):
+                L[base + i * n + j] = 0.5 * (L[base + i * n + j] + L[base + j * n + i])
+                L[base + j * n + i] = 0.0
+        for j in range(n):  # Cholesky, column by column (rows of L contiguous)
+            rj = base + j * n
+            acc = L[rj + j]
+            for k in range(j):
+                acc -= L[rj + k] * L[rj + k]
+            if not acc > 0.0:
+                return s
+            djj = math.sqrt(acc)
+            L[rj + j] = djj
+            for i in range(j + 1, n):
+                ri = base + i * n
+                acc = L[ri + j]
+                for k in range(j):
+                    acc -= L[ri + k] * L[rj + k]
+                L[ri + j] = acc / djj
+    return -1
+
+
+@njit(cache=True)
+def _strand_ratios(old, new, ptr, rtol, out):
+    """out[s] = g with new_s = g old_s to round-off (max |new - g old| <= rtol max |new| over strand s's block, g the
+    least-squares ratio, > 0), else NaN."""
+    for s in range(ptr.shape[0] - 1):
+        a = 0.0
+        b = 0.0
+        big = 0.0
+        for k in range(ptr[s], ptr[s + 1]):
+            a += new[k] * old[k]
+            b += old[k] * old[k]
+            big = max(big, abs(new[k]))
+        g = a / b if b > 0.0 else math.nan
+        if not g > 0.0:
+            out[s] = math.nan
+            continue
+        dev = 0.0
+        for k in range(ptr[s], ptr[s + 1]):
+            dev = max(dev, abs(new[k] - g * old[k]))
+        out[s] = g if dev <= rtol * big else math.nan
+
+
+@njit(cache=True)
+def _carried(cend_ptr, end_strand, g, rtol, out):
+    """out[i] = the common ratio g of contact i's strands when they all have one (equal to rtol), else NaN."""
+    for i in range(cend_ptr.shape[0] - 1):
+        gi = math.nan
+        for e in range(cend_ptr[i], cend_ptr[i + 1]):
+            ge = g[end_strand[e]]
+            if not ge > 0.0:
+                gi = math.nan
+                break
+            if e == cend_ptr[i]:
+                gi = ge
+            elif abs(ge - gi) > rtol * gi:
+                gi = math.nan
+                break
+        out[i] = gi
+
+
+@njit(cache=True)
+def _reusable(strand_ptr, ends_sorted, end_contact, g, g_contact, out):
+    """out[s]: strand s carries contacts, has a ratio g_s and every contact on it carries its rho over (its factor
+    then is the old one / sqrt(g_s))."""
+    for s in range(strand_ptr.shape[0] - 1):
+        ok = strand_ptr[s + 1] > strand_ptr[s] and g[s] > 0.0
+        for q in range(strand_ptr[s], strand_ptr[s + 1]):
+            if not ok:
+                break
+            ok = g_contact[end_contact[ends_sorted[q]]] > 0.0
+        out[s] = ok
+
+
+@njit(cache=True)
+def _scale_blocks(strands, L_ptr, src, factor, dst):
+    """dst[block s] = factor[s] src[block s] for the strands listed."""
+    for q in range(strands.shape[0]):
+        s = strands[q]
+        f = factor[s]
+        for k in range(L_ptr[s], L_ptr[s + 1]):
+            dst[k] = f * src[k]
+
+
+@njit(cache=True, fastmath=_FM)
+def _contact_diagonal(contacts, cend_ptr, end_strand, end_p0, end_p1, cols, vals, dof_offsets, D_data, D_ptr,
+                      D_is_diag, gamma2, out):
+    """out_i = sum_{e of i} J_e D_s(e) J_e^T + 2 gamma I (symmetrised) for the contacts listed."""
+    for q in range(contacts.shape[0]):
+        i = contacts[q]
+        for x in range(3):
+            for y in range(3):
+                out[i, x, y] = 0.0
+        for e in range(cend_ptr[i], cend_ptr[i + 1]):
+            s = end_strand[e]
+            o = dof_offsets[s]
+            n = dof_offsets[s + 1] - o
+            d0 = D_ptr[s]
+            for p in range(end_p0[e], end_p1[e]):
+                a = cols[p] - o
+                if D_is_diag[s]:
+                    d = D_data[d0 + a]
+                    for x in range(3):
+                        for y in range(3):
+                            out[i, x, y] += vals[p, x] * d * vals[p, y]
+                else:
+                    for p2 in range(end_p0[e], end_p1[e]):
+                        d = D_data[d0 + a * n + cols[p2] - o]
+                        for x in range(3):
+                            for y in range(3):
+                                out[i, x, y] += vals[p, x] * d * vals[p2, y]
+        for x in range(3):
+            for y in range(x + 1, 3):
+                t = 0.5 * (out[i, x, y] + out[i, y, x])
+                out[i, x, y] = t
+                out[i, y, x] = t
+            out[i, x, x] += gamma2
 
 
 @njit(cache=True, fastmath=_FM)
@@ -136,9 +269,10 @@ def _end_times(e, o, end_p0, end_p1, cols, vals, z):
 
 
 @njit(cache=True, fastmath=_FM)
-def _x_step(strand_ptr, ends_sorted, end_p0, end_p1, cols, vals, rho_end, dof_offsets, L_ptr, L, w, x, t):
-    """x_e = w_e - J_e M_s^-1 (sum_{e' on s} J_e'^T w_e') / rho_e for every strand s (M_s = L L^T, L lower,
-    row-major); t: scratch of the largest n_s."""
+def _x_step(strand_ptr, ends_sorted, end_p0, end_p1, cols, vals, rho_end, dof_offsets, L_ptr, L, L_scale, w, x, t):
+    """x_e = w_e - J_e M_s^-1 (sum_{e' on s} J_e'^T w_e') / rho_e for every strand s (M_s = c_s^2 L L^T, L lower,
+    row-major, c_s = L_scale[s]: a factor kept from an earlier run, StrandSplit.reusing); t: scratch of the
+    largest n_s."""
     S = strand_ptr.shape[0] - 1
     for s in range(S):
         q0 = strand_ptr[s]
@@ -160,6 +294,11 @@ def _x_step(strand_ptr, ends_sorted, end_p0, end_p1, cols, vals, rho_end, dof_of
             for j in range(k + 1, n):
                 acc -= L[base + j * n + k] * t[j]
             t[k] = acc / L[base + k * n + k]
+        c = L_scale[s]
+        if c != 1.0:
+            c = 1.0 / (c * c)
+            for k in range(n):
+                t[k] *= c
         for q in range(q0, q1):
             e = ends_sorted[q]
             a0, a1, a2 = _end_times(e, o, end_p0, end_p1, cols, vals, t)
@@ -243,13 +382,33 @@ def _strand_sum(end_p0, end_p1, cols, vals, x, out):
             out[cols[p]] += vals[p, 0] * x0 + vals[p, 1] * x1 + vals[p, 2] * x2
 
 
+#: StrandSplit.reusing keeps a contact's rho scaled, g rho_i, only within RHO_RTOL of the rule's beta tr(W'_ii) / 3
+#: (else the rule's, and its strands are refactored).  Without this limit (every contact of one g kept) the
+#: contacts whose W_ii is mostly 2 gamma I (their rule's rho barely moves with g) got rho off by up to |g - 1|, and
+#: example_groom(1000)'s re-solves took 220, 70, 40, 40, 20, 10 iterations instead of 210, 60, 30, 20, 20, 10;
+#: with 1e-2 (or 1e-3) they take exactly the fresh set-up's counts
+RHO_RTOL = 1e-2
+RATIO_RTOL = 1e-13  #: D'_s = g D_s "exactly" (StrandSplit.reusing): max |D'_s - g D_s| <= RATIO_RTOL max |D'_s|
+
+
+def _same_array(a, b) -> bool:
+    """a and b hold the same values: the same memory (views of one array, as the inversion's rounds share H), or
+    equal entries."""
+    if a.shape != b.shape or a.dtype != b.dtype:
+        return False
+    ia, ib = a.__array_interface__, b.__array_interface__
+    if ia["data"][0] == ib["data"][0] and ia["strides"] == ib["strides"]:
+        return True
+    return bool(np.array_equal(a, b))
+
+
 class StrandSplit:
     """The ends of a ContactProblem's contacts and the Cholesky factors of M_s = D_s^-1 + J_s^T J_s / rho, for a
-    per-contact rho (fixed for the whole run)."""
+    per-contact rho (fixed for the whole run).  Strand s's factor is L_scale[s] times its block of L (L_scale = 1
+    for a fresh set-up; see ``reusing``)."""
 
     def __init__(self, problem, rho_c: np.ndarray):
         H = problem.packed_H()
-        self.problem = problem
         off = np.ascontiguousarray(problem.dof_offsets, dtype=np.int64)
         m = problem.n_contacts
         per = _count_ends(H.ptr, H.cols, off)
@@ -268,28 +427,122 @@ class StrandSplit:
         self.cend_ptr, self.end_contact, self.end_p0, self.end_p1 = cend_ptr, end_contact, end_p0, end_p1
         self.end_strand = end_strand
         self.H, self.off = H, off
-        self.rho_c = np.ascontiguousarray(rho_c, dtype=np.float64)
-        self.rho_end = np.ascontiguousarray(self.rho_c[end_contact])
+        self.H_source = (problem.H.indptr, problem.H.indices, problem.H.data, problem.H.shape)
         sizes = np.diff(off)
         used = np.diff(self.strand_ptr) > 0
         self.L_ptr = np.zeros(S + 1, dtype=np.int64)
         np.cumsum(np.where(used, sizes * sizes, 0), out=self.L_ptr[1:])
-        M = np.zeros(int(self.L_ptr[-1]))
-        _accumulate_M(self.strand_ptr, self.ends_sorted, end_p0, end_p1, H.cols, H.vals, self.rho_end, off,
-                      self.L_ptr, M)
-        for s in np.flatnonzero(used):  # + D_s^-1, then Cholesky in place
-            n = int(sizes[s])
-            blk = M[self.L_ptr[s]:self.L_ptr[s + 1]].reshape(n, n)
-            d = problem.D_blocks[s]
-            if d.ndim == 1:
-                blk[np.diag_indices(n)] += 1.0 / d
-            else:
-                blk += np.linalg.inv(d)
-            blk[:] = np.linalg.cholesky(0.5 * (blk + blk.T))
-        self.L = M
         self.t = np.zeros(int(sizes.max()) if S else 0)
         self.t2 = np.zeros_like(self.t)
         self.n_ends = E
+        self._attach(problem)
+        self.rho_c = np.ascontiguousarray(rho_c, dtype=np.float64)
+        self.rho_end = np.ascontiguousarray(self.rho_c[end_contact])
+        self.L = np.empty(int(self.L_ptr[-1]))
+        self.L_scale = np.ones(S)
+        self.diag = None  # W_ii (m, 3, 3) that rho came from (run_admm; StrandSplit.reusing scales it)
+        self.beta = None  # the beta of rho_c = beta tr(W_ii) / 3 (run_admm)
+        self.refactored = self._factor(np.flatnonzero(used))
+
+    def _attach(self, problem):
+        self.problem = problem
+        self.D_data, self.D_ptr, self.D_is_diag = problem.D_data, problem.D_ptr, problem.D_is_diag
+        self.n_dofs = problem.n_dofs
+        self.gamma = problem.gamma
+
+    def _factor(self, strands) -> int:
+        """(Re)build the factors of ``strands`` (int array) in place (one compiled pass; D_s^-1 of dense blocks by
+        np.linalg.inv).  Returns their number."""
+        strands = np.ascontiguousarray(strands, dtype=np.int64)
+        D_inv = np.zeros(0)
+        dense = strands[~self.D_is_diag[strands]]
+        if len(dense):
+            D_inv = np.zeros_like(self.D_data)
+            sizes = np.diff(self.off)
+            for s in dense:
+                n = int(sizes[s])
+                a = self.D_ptr[s]
+                D_inv[a:a + n * n] = np.linalg.inv(self.D_data[a:a + n * n].reshape(n, n)).reshape(-1)
+        self.L_scale[strands] = 1.0
+        bad = _factor_strands(strands, self.strand_ptr, self.ends_sorted, self.end_p0, self.end_p1, self.H.cols,
+                              self.H.vals, self.rho_end, self.off, self.D_data, self.D_ptr, self.D_is_diag, D_inv,
+                              self.L_ptr, self.L)
+        if bad >= 0:
+            raise np.linalg.LinAlgError(f"strand {bad}: M_s = D_s^-1 + J_s^T J_s / rho is not positive definite")
+        return len(strands)
+
+    def factor(self, s: int) -> np.ndarray:
+        """Strand s's Cholesky factor of M_s (n_s x n_s, lower; empty for a strand without contacts)."""
+        blk = self.L[self.L_ptr[s]:self.L_ptr[s + 1]]
+        n = int(math.isqrt(blk.shape[0]))
+        return self.L_scale[s] * blk.reshape(n, n)
+
+    def same_H(self, problem) -> bool:
+        """Whether ``problem`` has this split's H (the same columns and values: its ends and packed H hold)."""
+        H = problem.H
+        indptr, indices, data, shape = self.H_source
+        return (H.shape == shape and problem.n_strands == len(self.strand_ptr) - 1
+                and _same_array(np.asarray(problem.dof_offsets, dtype=np.int64), self.off)
+                and _same_array(H.indptr, indptr) and _same_array(H.indices, indices) and _same_array(H.data, data))
+
+    def detached(self) -> "StrandSplit":
+        """A copy sharing every array but not the problem (for ADMMState: the problem's caches are not kept)."""
+        out = copy.copy(self)
+        out.problem = None
+        return out
+
+    @classmethod
+    def reusing(cls, problem, previous: "StrandSplit", beta: float):
+        """The split of ``problem`` built from ``previous`` (a detached split of an earlier run on the same H, e.g.
+        the inversion's previous stiffening round), or None when H, D's layout or beta differ.  Each strand gets
+        g_s with D'_s = g_s D_s to round-off (RATIO_RTOL; NaN when there is none).  A contact whose strands share
+        one g keeps its rho scaled, rho'_i = g rho_i, and its W_ii is scaled likewise, W'_ii = g (W_ii - 2 gamma I)
+        + 2 gamma' I; the other contacts get theirs afresh (W'_ii from their ends, rho'_i = beta tr(W'_ii) / 3).  A
+        strand with a g whose contacts all kept their rho keeps its factor: M'_s = D_s^-1 / g + J_s^T J_s /
+        (g rho) = M_s / g exactly, so L'_s = L_s / sqrt(g) (L_scale, no pass over L); the others are refactored.
+        The inversion's stiffening rounds scale every D_s by the new w_scale and the raised strands' by their
+        factor too, so all but the strands touching a raised strand keep their factors.  ``previous`` is consumed:
+        its L is updated in place (the factors of harolongo hold 1.25 GB)."""
+        if previous.L is None or previous.diag is None or previous.beta != beta or not previous.same_H(problem):
+            return None
+        if not (np.array_equal(previous.D_ptr, problem.D_ptr) and np.array_equal(previous.D_is_diag,
+                                                                                   problem.D_is_diag)):
+            return None
+        out = previous.detached()
+        cache = problem._cache  # the same package's ContactProblem: its packed H is previous's, W_ii is below
+        cache.setdefault("packed_H", previous.H)
+        out._attach(problem)
+        S, m = problem.n_strands, problem.n_contacts
+        g = np.empty(S)
+        _strand_ratios(previous.D_data, problem.D_data, problem.D_ptr, RATIO_RTOL, g)
+        gc = np.empty(m)
+        _carried(out.cend_ptr, out.end_strand, g, RATIO_RTOL, gc)
+        kept = gc > 0.0
+        eye = np.eye(3)
+        if "diag" in cache:
+            diag = cache["diag"]
+        else:
+            diag = np.empty((m, 3, 3))
+            diag[kept] = (gc[kept, None, None] * (previous.diag[kept] - 2.0 * previous.gamma * eye)
+                          + 2.0 * problem.gamma * eye)
+            _contact_diagonal(np.flatnonzero(~kept), out.cend_ptr, out.end_strand, out.end_p0, out.end_p1,
+                              out.H.cols, out.H.vals, out.off, problem.D_data, problem.D_ptr, problem.D_is_diag,
+                              2.0 * problem.gamma, diag)
+            cache["diag"] = diag
+        out.diag = diag
+        fresh = contact_rho(diag, beta)
+        carried = gc * previous.rho_c
+        kept &= np.abs(carried - fresh) <= RHO_RTOL * fresh
+        out.rho_c = np.ascontiguousarray(np.where(kept, carried, fresh))
+        out.rho_end = np.ascontiguousarray(out.rho_c[out.end_contact])
+        reuse = np.empty(S, dtype=np.bool_)
+        _reusable(out.strand_ptr, out.ends_sorted, out.end_contact, g, np.where(kept, gc, np.nan), reuse)
+        previous.L = None  # consumed: out.L is updated in place
+        out.L_scale = np.where(reuse, previous.L_scale / np.sqrt(np.where(reuse, g, 1.0)), 1.0)
+        out.refactored = out._factor(np.flatnonzero(~reuse & (np.diff(out.strand_ptr) > 0)))
+        out.t = np.zeros_like(previous.t)
+        out.t2 = np.zeros_like(previous.t2)
+        return out
 
     @property
     def nbytes(self) -> int:
@@ -298,21 +551,27 @@ class StrandSplit:
     def x_step(self, w, x):
         H = self.H
         _x_step(self.strand_ptr, self.ends_sorted, self.end_p0, self.end_p1, H.cols, H.vals, self.rho_end, self.off,
-                self.L_ptr, self.L, w, x, self.t)
+                self.L_ptr, self.L, self.L_scale, w, x, self.t)
 
     def strand_sum(self, x) -> np.ndarray:
         """h = sum_e J_e^T x_e (n,) for copies x (E, 3) of the forces per end: with x_e = r_i(e) it is H^T r; with
         ADMM's strand solves, the dual point l = D^1/2 h of certificate.error_bound_with_strands."""
-        out = np.empty(self.problem.n_dofs)
+        out = np.empty(self.n_dofs)
         _strand_sum(self.end_p0, self.end_p1, self.H.cols, self.H.vals, np.ascontiguousarray(x), out)
         return out
 
     def strand_velocity(self, x):
-        p, H = self.problem, self.H
+        H = self.H
         out = np.empty_like(x)
         _strand_velocity(self.strand_ptr, self.ends_sorted, self.end_p0, self.end_p1, H.cols, H.vals, self.off,
-                         p.D_data, p.D_ptr, p.D_is_diag, x, out, self.t, self.t2)
+                         self.D_data, self.D_ptr, self.D_is_diag, x, out, self.t, self.t2)
         return out
+
+
+def contact_rho(diag: np.ndarray, beta: float = BETA) -> np.ndarray:
+    """rho_i = beta tr(W_ii) / 3 per contact (1 where that is not positive)."""
+    rho_c = beta * np.einsum("kii->k", diag) / 3.0
+    return np.where(rho_c > 0, rho_c, 1.0)
 
 
 def strand_split_bytes(problem, anderson: int = ANDERSON) -> int:
@@ -347,7 +606,8 @@ class ADMMState:
     y_e = -J_e D_s J_s^T x_s (minus strand s's part of contact i's velocity): the forces carry over unchanged, and
     y_e, at the same forces, scales with D_s.  So the new run starts from
     z_e = s_i + (z_e - s_i) g_s rho_i / rho'_i, g_s = tr(D'_s) / tr(D_s) (exact for D'_s = g_s D_s, as a stiffness
-    factor gives: K^-2 / w_scale), rho' the new problem's own rho (its factors are new anyway).  For a converged
+    factor gives: K^-2 / w_scale), rho' the new run's rho (StrandSplit.reusing: g rho where that is within RHO_RTOL
+    of the rule's beta tr(W'_ii) / 3, else the rule's).  For a converged
     state that is the start the forces alone give.  Measured on example_groom(1000)'s stiffening re-solves: with the
     primal certificate (runs stopped late, nearly converged) no gain; since the inversion stops on the strand
     certificate (runs stopped early, at the q0 tolerance) the later re-solves take 10-60 iterations from the state
@@ -359,12 +619,15 @@ class ADMMState:
     d_trace: np.ndarray  # (S,) tr(D_s) per strand
     end_strand: np.ndarray  # (E,) ends' strands (contact-major): the structure the state belongs to
     cend_ptr: np.ndarray  # (m + 1,)
+    # the run's StrandSplit (detached from its problem), whose ends, W_ii, rho and factors the next run on the same H
+    # reuses where D did not change but by a scalar (StrandSplit.reusing); consumed by that run (then None)
+    split: object = field(default=None, repr=False, compare=False)
 
     def fits(self, split) -> bool:
         """Whether the state belongs to the same contact ends as ``split`` (a StrandSplit)."""
         return (self.z.shape[0] == split.n_ends and self.cend_ptr.shape == split.cend_ptr.shape
                 and np.array_equal(self.cend_ptr, split.cend_ptr) and np.array_equal(self.end_strand, split.end_strand)
-                and self.d_trace.shape[0] == split.problem.n_strands)
+                and self.d_trace.shape[0] == len(split.strand_ptr) - 1)
 
 
 def _start_from_state(state: ADMMState, split, rho_c: np.ndarray, d_trace: np.ndarray):
@@ -431,10 +694,15 @@ def run_admm(
         raise ValueError("beta must be > 0")
     t0 = time.perf_counter()
     m = problem.n_contacts
-    diag = problem.diagonal_blocks()
-    rho_c = beta * np.einsum("kii->k", diag) / 3.0
-    rho_c = np.where(rho_c > 0, rho_c, 1.0)
-    split = StrandSplit(problem, rho_c)
+    split = None
+    if initial_state is not None and initial_state.split is not None:  # the previous run's set-up, on the same H
+        previous, initial_state.split = initial_state.split, None
+        split = StrandSplit.reusing(problem, previous, beta)
+    if split is None:
+        diag = problem.diagonal_blocks()
+        split = StrandSplit(problem, contact_rho(diag, beta))
+        split.diag, split.beta = diag, beta
+    rho_c = split.rho_c
     b = np.ascontiguousarray(problem.b.reshape(m, 3))
     mu = problem.mu
     rho = problem.rho()
@@ -503,7 +771,7 @@ def run_admm(
         res, u = measure(s)
         history.append((k, res, time.perf_counter() - t0))
     state = ADMMState(z=z.copy(), s=s.copy(), rho_c=rho_c.copy(), d_trace=d_trace, end_strand=split.end_strand,
-                      cend_ptr=split.cend_ptr)
+                      cend_ptr=split.cend_ptr, split=split.detached())
     if state_out is not None:
         state_out["state"] = state
     return ADMMOutcome(s.reshape(-1).copy(), float(res), k, bool(res <= tol), history, time.perf_counter() - t0,
