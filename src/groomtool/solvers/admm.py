@@ -88,57 +88,52 @@ def _fill_ends(ptr, cols, dof_offsets, cend_ptr, end_contact, end_strand, end_p0
             end_p1[k] = p + 1
 
 
-@njit(cache=True, fastmath=_FM)
+@njit(cache=True)
 def _factor_strands(strands, strand_ptr, ends_sorted, end_p0, end_p1, cols, vals, rho_end, dof_offsets, D_data,
                     D_ptr, D_is_diag, D_inv, L_ptr, L):
-    """For each strand s of ``strands``: M_s = D_s^-1 + sum_{e on s} J_e^T J_e / rho_e (dense n_s x n_s, row-major at
-    L[L_ptr[s]:]; D_s^-1 from D_data when diagonal, from D_inv (laid out like D_data) when dense), symmetrised, then
-    its Cholesky factor in place (lower, the upper triangle zeroed, as np.linalg.cholesky).  Returns the first strand
-    whose M_s is not positive definite, or -1."""
+    """For each strand s of ``strands``: M_s = D_s^-1 + J_s^T J_s (J_s: the rows J_e / sqrt(rho_e) of its ends, dense,
+    one BLAS product per strand; D_s^-1 from D_data when diagonal, from D_inv (laid out like D_data) when dense),
+    symmetrised, then its Cholesky factor (np.linalg.cholesky: LAPACK), row-major at L[L_ptr[s]:] (lower, the upper
+    triangle zeroed).  Returns the first strand whose M_s has a diagonal entry <= 0, or -1 (an M_s that is not
+    positive definite otherwise raises numpy's LinAlgError)."""
     for q in range(strands.shape[0]):
         s = strands[q]
         o = dof_offsets[s]
         n = dof_offsets[s + 1] - o
         base = L_ptr[s]
-        for k in range(n * n):
-            L[base + k] = 0.0
-        for qq in range(strand_ptr[s], strand_ptr[s + 1]):
+        q0 = strand_ptr[s]
+        J = np.zeros((3 * (strand_ptr[s + 1] - q0), n))
+        for qq in range(q0, strand_ptr[s + 1]):
             e = ends_sorted[qq]
-            w = 1.0 / rho_end[e]
+            w = 1.0 / math.sqrt(rho_end[e])
+            r = 3 * (qq - q0)
             for p in range(end_p0[e], end_p1[e]):
-                a = cols[p] - o
-                va0 = vals[p, 0] * w
-                va1 = vals[p, 1] * w
-                va2 = vals[p, 2] * w
-                for p2 in range(end_p0[e], end_p1[e]):
-                    c = cols[p2] - o
-                    L[base + a * n + c] += va0 * vals[p2, 0] + va1 * vals[p2, 1] + va2 * vals[p2, 2]
+                c = cols[p] - o
+                J[r, c] = vals[p, 0] * w
+                J[r + 1, c] = vals[p, 1] * w
+                J[r + 2, c] = vals[p, 2] * w
+        M = np.dot(J.T, J)
         d0 = D_ptr[s]
         if D_is_diag[s]:
             for k in range(n):
-                L[base + k * n + k] += 1.0 / D_data[d0 + k]
+                M[k, k] += 1.0 / D_data[d0 + k]
         else:
-            for k in range(n * n):
-                L[base + k] += D_inv[d0 + k]
-        for i in range(n):  # the lower triangle gets 0.5 (M + M^T), the upper one 0
+            for i in range(n):
+                for j in range(n):
+                    M[i, j] += D_inv[d0 + i * n + j]
+        for i in range(n):  # 0.5 (M + M^T)
             for j in range(i):
-                L[base + i * n + j] = 0.5 * (L[base + i * n + j] + L[base + j * n + i])
-                L[base + j * n + i] = 0.0
-        for j in range(n):  # Cholesky, column by column (rows of L contiguous)
-            rj = base + j * n
-            acc = L[rj + j]
-            for k in range(j):
-                acc -= L[rj + k] * L[rj + k]
-            if not acc > 0.0:
+                t = 0.5 * (M[i, j] + M[j, i])
+                M[i, j] = t
+                M[j, i] = t
+        for i in range(n):  # a cheap test first: LAPACK's failure would raise from inside the kernel
+            if not M[i, i] > 0.0:
                 return s
-            djj = math.sqrt(acc)
-            L[rj + j] = djj
-            for i in range(j + 1, n):
-                ri = base + i * n
-                acc = L[ri + j]
-                for k in range(j):
-                    acc -= L[ri + k] * L[rj + k]
-                L[ri + j] = acc / djj
+        C = np.linalg.cholesky(M)
+        for i in range(n):
+            row = base + i * n
+            for j in range(n):
+                L[row + j] = C[i, j]
     return -1
 
 
