@@ -516,18 +516,30 @@ def contact_load_hessians(helix: sh.SuperHelix, strands, point_strand, point_s, 
     by_length = np.argsort(helix.n_elements[strands], kind="stable")  # similar lengths together: less padding
     for start in range(0, len(strands), chunk):
         pos = by_length[start:start + chunk]
-        ids = strands[pos]
-        sub = helix.subset(ids)
-        lo = np.searchsorted(ps, ids, "left")
-        hi = np.searchsorted(ps, ids, "right")
-        count = hi - lo
-        local = np.repeat(np.arange(len(ids)), count)
-        pidx = np.repeat(lo, count) + (np.arange(len(local)) - np.repeat(np.cumsum(count) - count, count))
-        full = sh.point_load_hessian(sub, local, pss[pidx], pf[pidx])
+        sub = helix.subset(strands[pos])
+        U, A, diag = _load_hessian_parts(sub, strands[pos], ps, pss, pf)
         for i, p in enumerate(pos):
-            n = 3 * int(sub.n_elements[i])
-            out[p] = full[i, :n, :n].copy()
+            out[p] = _assemble_one(U, A, diag, i, int(sub.n_elements[i]))
     return out
+
+
+def _load_hessian_parts(sub: sh.SuperHelix, ids, ps, pss, pf, kin=None):
+    """superhelix.point_load_hessian_parts of the strands ``sub`` = helix.subset(ids), from the loads of all
+    strands sorted by strand (ps, pss, pf)."""
+    lo = np.searchsorted(ps, ids, "left")
+    hi = np.searchsorted(ps, ids, "right")
+    count = hi - lo
+    local = np.repeat(np.arange(len(ids)), count)
+    pidx = np.repeat(lo, count) + (np.arange(len(local)) - np.repeat(np.cumsum(count) - count, count))
+    return sh.point_load_hessian_parts(sub, local, pss[pidx], pf[pidx], kin)
+
+
+def _assemble_one(U, A, diag, i, m: int) -> np.ndarray:
+    """The dense 3m x 3m matrix of strand i of a chunk's generators (superhelix.assemble_gravity_jacobian), at
+    its own size."""
+    full = np.empty((3 * m, 3 * m))
+    sh.assemble_gravity_jacobian(U[i:i + 1, :m], A[i:i + 1, :m], diag[i:i + 1, :m], full[None])
+    return full
 
 
 def _clothoid_load_hessians(helix: cl.SuperClothoid, strands, ps, pss, pf, rotation_step: float,
@@ -593,7 +605,8 @@ def held_stiffness_ratios(helix: sh.SuperHelix, stiffness_diag, linear_density: 
     Second-order condition of the constrained equilibrium, strand by strand:
     lambda_max(Z^T K^-1/2 (dF/dq + dF_c/dq) K^-1/2 Z) < 1, with
 
-    - dF_c/dq: the stiffness of the strand's contact forces as dead loads (contact_load_hessians);
+    - dF_c/dq: the stiffness of the strand's contact forces as dead loads (contact_load_hessians; for
+      Super-Helices its generators are added to gravity's and whitened before one dense assembly per strand);
     - Z: an orthonormal basis of the motions y = K^1/2 dq that keep the strand's **head** contacts with
       r_N > 0 in place: all three rows of H for a sticking one (||r_T|| < mu r_N), the normal row only for
       one on the cone boundary (it may slide; the head is a mesh, whose distance has no curvature inside a
@@ -643,28 +656,47 @@ def held_stiffness_ratios(helix: sh.SuperHelix, stiffness_diag, linear_density: 
     cols = 3 * helix.flat_offsets()
     if progress is not None:
         progress.reset(total=len(strands))
-    hessians = contact_load_hessians(helix, strands, point_strand, point_s, point_force)
     clothoid = isinstance(helix, cl.SuperClothoid)
+    by_length = np.argsort(helix.n_elements[strands], kind="stable")  # similar lengths together: less padding
+    if clothoid:
+        hessians = contact_load_hessians(helix, strands, point_strand, point_s, point_force)
+    else:
+        by_strand = np.argsort(point_strand, kind="stable")
+        ps, pss, pf = point_strand[by_strand], point_s[by_strand], point_force[by_strand]
+        g = np.asarray(gravity, dtype=np.float64)
+        skew_g = sh.skew(g)
     with threadpool_limits(1, user_api="blas"):
         for chunk_start in range(0, len(strands), 256):
-            ids = strands[chunk_start:chunk_start + 256]
+            pos = by_length[chunk_start:chunk_start + 256]
+            ids = strands[pos]
             sub = helix.subset(ids)
             if clothoid:  # K = L L^T block tridiagonal: whitening by L^-T (same eigenvalues)
                 dF = cl.gravity_force_jacobian(sub, linear_density, gravity)
                 K = cl.stiffness_matrix(sub, stiffness_diag)
             else:
-                dF = sh.gravity_force_jacobian(sub, linear_density, gravity)
-                K = sh.stiffness(sub, stiffness_diag).reshape(len(ids), -1)
+                # dF/dq + dF_c/dq in one set of generators: gravity's block U_j G_k = Theta_j^T (-rhoS [g]x G_k),
+                # the loads' Theta_j^T A_k; whitened by K^-1/2 = diag(sc) in the generators (U_j rows by sc_j,
+                # A_k columns by sc_k, diag_k both ways), then assembled per strand
+                kin = sh.kinematics(sub)
+                U, A_gen, diag = _load_hessian_parts(sub, ids, ps, pss, pf, kin)
+                _, G_grav, diag_grav = sh.gravity_force_jacobian_parts(sub, linear_density, g, kin)
+                A_gen -= linear_density * np.einsum("ab,snbc->snac", skew_g, G_grav)
+                diag += diag_grav
+                K = sh.stiffness(sub, stiffness_diag)
+                sc = np.divide(1.0, np.sqrt(K), out=np.zeros_like(K), where=K > 0)  # (s, N, 3), 0 on padding
+                U *= sc[..., :, None]
+                A_gen *= sc[..., None, :]
+                diag *= sc[..., :, None] * sc[..., None, :]
             for i, s in enumerate(ids):
                 if clothoid:
                     n = 3 * (int(sub.n_elements[i]) + 1)
                     Wm = _clothoid_whitening(K[i, :n, :n])
-                    A = Wm.T @ (dF[i, :n, :n] + hessians[chunk_start + i]) @ Wm
+                    A = Wm.T @ (dF[i, :n, :n] + hessians[pos[i]]) @ Wm
+                    A = 0.5 * (A + A.T)
                 else:
                     n = 3 * int(sub.n_elements[i])
-                    scale = 1.0 / np.sqrt(K[i, :n])
-                    A = scale[:, None] * (dF[i, :n, :n] + hessians[chunk_start + i]) * scale[None, :]
-                A = 0.5 * (A + A.T)
+                    scale = sc[i, :n // 3].reshape(-1)
+                    A = _assemble_one(U, A_gen, diag, i, n // 3)  # symmetric exactly
                 lo, hi = np.searchsorted(head_strand, [s, s + 1])
                 rows = [3 * c + np.arange(3) if stick else np.array([3 * c])
                         for c, stick in zip(head_ids[lo:hi], head_stick[lo:hi])]

@@ -816,16 +816,6 @@ def point_load_hessian_parts(helix: SuperHelix, strand, s, f, kin: Kinematics | 
     return U, A, diag
 
 
-def point_load_hessian(helix: SuperHelix, strand, s, f, kin: Kinematics | None = None) -> np.ndarray:
-    """The Hessian in q of sum_p f_p . C(s_p; q) per strand, (S, 3N, 3N), symmetric
-    (:func:`point_load_hessian_parts` assembled by :func:`assemble_gravity_jacobian`; zero on padding)."""
-    U, A, diag = point_load_hessian_parts(helix, strand, s, f, kin)
-    S, N = helix.lengths.shape
-    full = np.empty((S, 3 * N, 3 * N))
-    assemble_gravity_jacobian(U, A, diag, full)
-    return full
-
-
 @njit(cache=True)
 def _point_load_hessian_kernel(l, w, z, c, dc, ddc, C, R, D, Theta, n_elements, strand, elem, t, f, U, A, diag):
     """Bin the loads per element (force, f (x - C_0)^T, the own-element blocks of A and diag), then one pass
