@@ -49,6 +49,7 @@ _FM = {"contract", "arcp", "nsz"}
 BETA = 0.03  #: rho_i = BETA tr(W_ii) / 3 (example_groom(300) with all contacts: 0.01 slower, 0.1 / 0.3 slower)
 ALPHA = 1.6  #: over-relaxation
 ANDERSON = 8  #: memory of the Anderson mixing of (x^, lam); 0 = plain ADMM
+FACTOR_BLOCKS = 6  #: _factor_strands: a strand's ends in this many blocks by the columns they reach (BLAS per block)
 WARM_SWEEPS = 20  #: Gauss-Seidel sweeps before the first ADMM iteration (cold starts only)
 
 
@@ -91,8 +92,9 @@ def _fill_ends(ptr, cols, dof_offsets, cend_ptr, end_contact, end_strand, end_p0
 @njit(cache=True)
 def _factor_strands(strands, strand_ptr, ends_sorted, end_p0, end_p1, cols, vals, rho_end, dof_offsets, D_data,
                     D_ptr, D_is_diag, D_inv, L_ptr, L):
-    """For each strand s of ``strands``: M_s = D_s^-1 + J_s^T J_s (J_s: the rows J_e / sqrt(rho_e) of its ends, dense,
-    one BLAS product per strand; D_s^-1 from D_data when diagonal, from D_inv (laid out like D_data) when dense),
+    """For each strand s of ``strands``: M_s = D_s^-1 + J_s^T J_s (J_s: the rows J_e / sqrt(rho_e) of its ends, dense;
+    the ends sorted by the columns they reach and taken in FACTOR_BLOCKS blocks, one BLAS product per block over its
+    columns only: a Super-Helix contact reaches the dofs up to its element); D_s^-1 from D_data when diagonal, from D_inv (laid out like D_data) when dense),
     symmetrised, then its Cholesky factor (np.linalg.cholesky: LAPACK), row-major at L[L_ptr[s]:] (lower, the upper
     triangle zeroed).  Returns the first strand whose M_s has a diagonal entry <= 0, or -1 (an M_s that is not
     positive definite otherwise raises numpy's LinAlgError)."""
@@ -102,17 +104,34 @@ def _factor_strands(strands, strand_ptr, ends_sorted, end_p0, end_p1, cols, vals
         n = dof_offsets[s + 1] - o
         base = L_ptr[s]
         q0 = strand_ptr[s]
-        J = np.zeros((3 * (strand_ptr[s + 1] - q0), n))
-        for qq in range(q0, strand_ptr[s + 1]):
-            e = ends_sorted[qq]
-            w = 1.0 / math.sqrt(rho_end[e])
-            r = 3 * (qq - q0)
-            for p in range(end_p0[e], end_p1[e]):
-                c = cols[p] - o
-                J[r, c] = vals[p, 0] * w
-                J[r + 1, c] = vals[p, 1] * w
-                J[r + 2, c] = vals[p, 2] * w
-        M = np.dot(J.T, J)
+        k = strand_ptr[s + 1] - q0
+        width = np.empty(k, dtype=np.int64)  # the columns an end reaches (its panel is sorted)
+        for qq in range(k):
+            e = ends_sorted[q0 + qq]
+            width[qq] = cols[end_p1[e] - 1] - o + 1 if end_p1[e] > end_p0[e] else 0
+        order = np.argsort(width)
+        M = np.zeros((n, n))
+        n_blocks = min(FACTOR_BLOCKS, k)
+        for b in range(n_blocks):  # ends by width, in blocks: each block's product only over the columns it reaches
+            lo = b * k // n_blocks
+            hi = (b + 1) * k // n_blocks
+            c = width[order[hi - 1]]
+            if hi == lo or c == 0:
+                continue
+            J = np.zeros((3 * (hi - lo), c))
+            for qq in range(lo, hi):
+                e = ends_sorted[q0 + order[qq]]
+                w = 1.0 / math.sqrt(rho_end[e])
+                r = 3 * (qq - lo)
+                for p in range(end_p0[e], end_p1[e]):
+                    a = cols[p] - o
+                    J[r, a] = vals[p, 0] * w
+                    J[r + 1, a] = vals[p, 1] * w
+                    J[r + 2, a] = vals[p, 2] * w
+            P = np.dot(J.T, J)
+            for i in range(c):
+                for j in range(c):
+                    M[i, j] += P[i, j]
         d0 = D_ptr[s]
         if D_is_diag[s]:
             for k in range(n):
