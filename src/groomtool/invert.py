@@ -321,6 +321,7 @@ def invert_groom(groom: Groom, head=None, params: InversionParams | None = None,
             break
         history[-1]["raised"] = int(np.count_nonzero(step > factor))
         factor, rounds = step, rounds + 1
+    admm_state = None  # the last round's ADMM state holds its strand factors (1.25 GB on harolongo): not needed now
     if contacts is not None and report["solve"].get("warning"):
         warnings.warn(report["solve"]["warning"], FeasibleSolveWarning, stacklevel=2)
 
