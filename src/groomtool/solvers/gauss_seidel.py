@@ -717,7 +717,9 @@ def run_gauss_seidel(
         else:
             g = x  # plain Gauss-Seidel updates in place
             gf = g.reshape(-1)
-        fails += op.sweep(code, omega, g, continuing=g is x and sweeps > 0 and not stale, atol=atol)
+        # continuing: v = D H^T g is current (g is x, swept in place, or just measured: measure(x) before the
+        # first sweep refreshed v for x), so a matrix-free sweep need not recompute it
+        fails += op.sweep(code, omega, g, continuing=g is x and not stale, atol=atol)
         stale = False
         sweeps += 1
         if sym_on and sweeps < max_sweeps:  # the backward half: a sweep of its own in the count
