@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 import scipy.linalg
 import trimesh
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from groomtool import Groom, Material
@@ -89,11 +89,14 @@ def _check_against_references(helix, strand, s, f, rel=1e-8, second_differences=
     ids = np.arange(helix.n_strands)
     ours = contact_load_hessians(helix, ids, strand, s, f)
     fd = contact_load_hessians_reference(helix, ids, strand, s, f)
+    # the reference's own error, estimated from the same differences at twice the step (it matters where the
+    # Hessian is tiny, e.g. a load next to the root: 1e-16 entries that the differences get to 2e-8 relative)
+    fd2 = contact_load_hessians_reference(helix, ids, strand, s, f, rotation_step=2e-6)
     for k in ids:
         n = 3 * int(helix.n_elements[k])
         assert ours[k].shape == (n, n)
         scale = np.abs(fd[k]).max()
-        np.testing.assert_allclose(ours[k], fd[k], atol=rel * scale, rtol=0)
+        np.testing.assert_allclose(ours[k], fd[k], atol=rel * scale + 4.0 * np.abs(fd2[k] - fd[k]).max(), rtol=0)
         assert np.array_equal(ours[k], ours[k].T)
         if second_differences:
             mine = strand == k
@@ -106,6 +109,7 @@ def _check_against_references(helix, strand, s, f, rel=1e-8, second_differences=
 
 @given(seed=st.integers(0, 10_000), loads=st.integers(1, 6))
 @settings(max_examples=20, deadline=None)
+@example(seed=836, loads=1)  # a 1-element strand loaded 0.15 mm from its root: Hessian entries ~1e-16
 def test_analytic_load_hessian_matches_the_finite_differences_it_replaced(seed, loads):
     helix = random_helix(seed, n_strands=4, max_elements=8)
     rng = np.random.default_rng(seed + 2)
