@@ -1,10 +1,11 @@
 """Per-strand linear algebra of the semi-implicit step: the factorised step matrix and its solves.
 
-Every strand has its own Mhat on its 3 N_s real dofs.  The factors are stored back to back
-(StrandFactors: memory sum n_s^2, not S max(n_s)^2), made in one compiled pass (LAPACK dpotrf through
-numba, failure reported instead of raised) with the rare eigendecompositions of the unstable-mode
-correction in Python; the small triangular solves are compiled loops, the inverses LAPACK dpotri (a
-multi-threaded BLAS is slow on 100 x 100 systems on a busy machine: the simulator holds it to one thread).
+Every strand has its own Mhat on its 3 N_s real dofs.  The factors are stored back to back as packed
+lower triangles (StrandFactors: memory sum n_s (n_s + 1) / 2, not S max(n_s)^2), made in one compiled
+pass (LAPACK dpotrf through numba, failure reported instead of raised) with the eigendecompositions of
+the unstable-mode correction in Python (kept packed too: StepCorrections); the small triangular solves
+are compiled loops, the inverses LAPACK dpotri (a multi-threaded BLAS is slow on 100 x 100 systems on a
+busy machine: the simulator holds it to one thread).
 """
 
 from __future__ import annotations
@@ -62,43 +63,122 @@ def strand_chunks(n_elements: np.ndarray, max_bytes: int = CHUNK_BYTES) -> list[
     return chunks
 
 
+def packed_size(n):
+    """Entries of the lower triangle of an n x n matrix (the packed storage of StrandFactors, StepCorrections)."""
+    return n * (n + 1) // 2
+
+
+@njit(cache=True)
+def _pack_lower(m, out):
+    """out[i (i + 1) / 2 + j] = m[i, j] for j <= i (row-major lower triangle)."""
+    n = m.shape[0]
+    o = 0
+    for i in range(n):
+        for j in range(i + 1):
+            out[o] = m[i, j]
+            o += 1
+
+
+@njit(cache=True)
+def _unpack_lower(data, o, n):
+    """The (n, n) lower triangular matrix packed at data[o:] (zeros above the diagonal)."""
+    out = np.zeros((n, n))
+    for i in range(n):
+        r = o + i * (i + 1) // 2
+        for j in range(i + 1):
+            out[i, j] = data[r + j]
+    return out
+
+
 class StepCorrections:
     """The unstable-mode correction C_s = modified_step_matrix(a, b) - a - b of each strand that needed
     one, kept between steps (factor_step_matrix; a kept C is only used while the strand needs one).
-    Stored back to back in one growing buffer (``packed()``: the buffer and each strand's start, -1 for
-    none) so that the compiled kernel reads them in place: a new C overwrites the strand's slot."""
+
+    C is symmetric: its lower triangle is stored (row-major, n (n + 1) / 2 entries, symmetrised on the way in)
+    in arenas of exact size, one per factor_step_matrix call that brought new strands (the simulator's chunks):
+    a new C of a strand that has a slot overwrites it; new strands of a range get one new arena holding that
+    range's kept slots too (only the range's own data is copied, no buffer of the whole groom grows).  The
+    compiled kernels read one arena and per strand its offset (``range_arena``), -1 for none."""
 
     def __init__(self, n_strands: int):
-        self.start = np.full(n_strands, -1, dtype=np.int64)
+        self.start = np.full(n_strands, -1, dtype=np.int64)  # offset in its arena
+        self.arena = np.full(n_strands, -1, dtype=np.int64)  # index into self.arenas
         self.size = np.zeros(n_strands, dtype=np.int64)
-        self.data = np.zeros(0)
-        self.used = 0
+        self.arenas: list[np.ndarray | None] = []
 
     def get(self, s: int) -> np.ndarray | None:
+        """Strand s's C (n, n), symmetric (a new array), or None."""
         if self.start[s] < 0:
             return None
         n = int(self.size[s])
-        return self.data[self.start[s]:self.start[s] + n * n].reshape(n, n)
+        L = _unpack_lower(self.arenas[self.arena[s]], int(self.start[s]), n)
+        return L + np.tril(L, -1).T
+
+    def nbytes(self) -> int:
+        return sum(a.nbytes for a in self.arenas if a is not None)
 
     def set(self, s: int, correction: np.ndarray) -> None:
-        n = correction.shape[0]
-        if self.start[s] < 0 or self.size[s] != n:
-            if self.used + n * n > len(self.data):  # grow geometrically: amortised copies
-                grown = np.zeros(max(2 * len(self.data), self.used + n * n, 1024))
-                grown[:self.used] = self.data[:self.used]
-                self.data = grown
-            self.start[s], self.size[s] = self.used, n
-            self.used += n * n
-        self.data[self.start[s]:self.start[s] + n * n] = np.asarray(correction, dtype=np.float64).ravel()
+        self.store(s, s + 1, [(s, correction)])
 
-    def packed(self) -> tuple[np.ndarray, np.ndarray]:
-        return self.data, self.start
+    def store(self, first: int, stop: int, items) -> None:
+        """Keep the corrections ``items`` [(s, C)] of strands s in first..stop-1: in place where s has a slot of
+        its size, else in one new arena of exact size for the range's kept slots and the new ones."""
+        new = [s for s, c in items if self.start[s] < 0 or self.size[s] != c.shape[0]]
+        if new:
+            for s, c in items:
+                self.size[s] = c.shape[0]
+            self._rearrange(first, stop, new)
+        for s, c in items:
+            c = np.asarray(c, dtype=np.float64)
+            n = c.shape[0]
+            o = int(self.start[s])
+            _pack_lower(0.5 * (c + c.T), self.arenas[self.arena[s]][o:o + packed_size(n)])
+
+    def _rearrange(self, first: int, stop: int, new=()) -> None:
+        """One new arena for the strands of first..stop-1 that have a slot (copied) and those in ``new`` (empty
+        slots of size self.size[s]); arenas left without a strand are released."""
+        idx = np.arange(first, stop)
+        kept = idx[self.start[first:stop] >= 0]
+        kept = kept[~np.isin(kept, new)]
+        strands = np.concatenate([kept, np.asarray(new, dtype=np.int64)])
+        sizes = packed_size(self.size[strands])
+        offsets = np.zeros(len(strands) + 1, dtype=np.int64)
+        np.cumsum(sizes, out=offsets[1:])
+        arena = np.empty(int(offsets[-1]))
+        for k, s in enumerate(kept):
+            o, m = int(self.start[s]), int(sizes[k])
+            arena[offsets[k]:offsets[k] + m] = self.arenas[self.arena[s]][o:o + m]
+        released = set(int(a) for a in self.arena[strands] if a >= 0)
+        self.arenas.append(arena)
+        self.arena[strands] = len(self.arenas) - 1
+        self.start[strands] = offsets[:-1]
+        in_use = set(np.unique(self.arena[self.arena >= 0]).tolist())
+        for a in released - in_use:
+            self.arenas[a] = None
+
+    def range_arena(self, first: int, stop: int) -> tuple[np.ndarray, np.ndarray]:
+        """(arena, offsets) of the strands first..stop-1 (offset -1: no C), the range's slots moved into one arena
+        if they were in several."""
+        arenas = np.unique(self.arena[first:stop][self.arena[first:stop] >= 0])
+        if len(arenas) == 0:
+            return np.zeros(0), np.full(stop - first, -1, dtype=np.int64)
+        if len(arenas) > 1:
+            self._rearrange(first, stop)
+            arenas = self.arena[first:stop][self.arena[first:stop] >= 0][:1]
+        start = np.where(self.arena[first:stop] == arenas[0], self.start[first:stop], -1)
+        return self.arenas[int(arenas[0])], np.ascontiguousarray(start)
+
+    def by_arena(self):
+        """(arena, offsets (S,), -1 for strands elsewhere or without C) for each arena in use."""
+        for k, a in enumerate(self.arenas):
+            if a is not None:
+                yield a, np.where(self.arena == k, self.start, -1)
 
 
 class StrandFactors:
     """Cholesky factors of every strand's step matrix on its n_s = 3 N_s real dofs, stored back to back
-    (memory sum n_s^2, not S max(n_s)^2): strand s's factor is data[ptr[s]:ptr[s+1]] as an (n_s, n_s)
-    row-major matrix.
+    as packed lower triangles (memory sum n_s (n_s + 1) / 2, not S max(n_s)^2): strand s's factor is
+    data[ptr[s]:ptr[s+1]], row i of L at ptr[s] + i (i + 1) / 2 (:meth:`factor` unpacks it).
 
     Tip first: with P the reversal of the dofs, the stored L is lower triangular with P Mhat P = L L^T,
     i.e. Mhat = (P L P)(P L P)^T with P L P upper triangular.  A contact on element e moves the dofs
@@ -109,7 +189,7 @@ class StrandFactors:
     def __init__(self, n_elements: np.ndarray):
         self.sizes = 3 * np.asarray(n_elements, dtype=np.int64)
         self.ptr = np.zeros(len(self.sizes) + 1, dtype=np.int64)
-        np.cumsum(self.sizes * self.sizes, out=self.ptr[1:])
+        np.cumsum(packed_size(self.sizes), out=self.ptr[1:])
         self.data = np.zeros(int(self.ptr[-1]))
         # per strand: whether its factor includes an unstable-mode correction C (factor_step_matrix), and whether
         # that C is kept in the StepCorrections given (False: a fresh C made without one, not stored anywhere)
@@ -117,9 +197,12 @@ class StrandFactors:
         self.correction_kept = np.ones(len(self.sizes), dtype=bool)
 
     def factor(self, s: int) -> np.ndarray:
-        """The stored (tip-first, lower triangular) factor L of P Mhat_s P."""
-        n = int(self.sizes[s])
-        return self.data[self.ptr[s]:self.ptr[s + 1]].reshape(n, n)
+        """The stored (tip-first, lower triangular) factor L of P Mhat_s P, unpacked (a new (n, n) array)."""
+        return _unpack_lower(self.data, int(self.ptr[s]), int(self.sizes[s]))
+
+    def set_factor(self, s: int, L: np.ndarray) -> None:
+        """Store the lower triangle of ``L`` as strand s's factor."""
+        _pack_lower(np.ascontiguousarray(L, dtype=np.float64), self.data[self.ptr[s]:self.ptr[s + 1]])
 
     def solve(self, rhs: np.ndarray) -> np.ndarray:
         """x = Mhat^-1 rhs per strand; rhs (S, n_pad) padded (padding rows are copied: identity)."""
@@ -137,9 +220,19 @@ class StrandFactors:
 
     def leading_inverse(self, s: int, k: int) -> np.ndarray:
         """(Mhat_s^-1)[:k, :k]: the inverse of the factor's trailing k x k block, reversed (LAPACK dpotri)."""
-        n = int(self.sizes[s])
-        T = np.ascontiguousarray(self.factor(s)[n - k:, n - k:])
+        T = _trailing_block(self.data, int(self.ptr[s]), int(self.sizes[s]), int(k))
         return np.ascontiguousarray(cho_inverse(T, k)[::-1, ::-1])
+
+
+@njit(cache=True)
+def _trailing_block(data, o, n, k):
+    """L[n-k:, n-k:] of the packed lower triangular L at data[o:] (zeros above the diagonal)."""
+    out = np.zeros((k, k))
+    for i in range(k):
+        r = o + (n - k + i) * (n - k + i + 1) // 2 + n - k
+        for j in range(i + 1):
+            out[i, j] = data[r + j]
+    return out
 
 
 @njit(cache=True)
@@ -147,7 +240,7 @@ def _solve_kernel(data, ptr, sizes, rhs, out):
     """x = P (L L^T)^-1 P rhs per strand (L stored tip first, P the reversal)."""
     for s in range(sizes.shape[0]):
         n = sizes[s]
-        L = data[ptr[s]:ptr[s + 1]].reshape(n, n)
+        L = data[ptr[s]:ptr[s + 1]]
         y = _forward(L, rhs[s, :n][::-1].copy(), n)
         x = _backward(L, y, n)
         for i in range(n):
@@ -159,16 +252,18 @@ def _apply_kernel(data, ptr, sizes, x, out):
     """out = P L L^T P x per strand (L stored tip first, P the reversal)."""
     for s in range(sizes.shape[0]):
         n = sizes[s]
-        L = data[ptr[s]:ptr[s + 1]].reshape(n, n)
+        L = data[ptr[s]:ptr[s + 1]]  # packed rows: L[i, k] = L[i (i + 1) / 2 + k]
         y = np.zeros(n)
         for i in range(n):  # y = L^T P x
             xi = x[s, n - 1 - i]
+            r = i * (i + 1) // 2
             for k in range(i + 1):
-                y[k] += L[i, k] * xi
+                y[k] += L[r + k] * xi
         for i in range(n):  # out = P L y
             acc = 0.0
+            r = i * (i + 1) // 2
             for k in range(i + 1):
-                acc += L[i, k] * y[k]
+                acc += L[r + k] * y[k]
             out[s, n - 1 - i] = acc
 
 
@@ -187,10 +282,10 @@ def _factor_kernel(A, a_scale, Kd, k_scale, B, U, G, Dg, b_scale, n_elements, co
     """Per strand, on its 3 N_s real dofs: a = a_scale A + diag(k_scale Kd), b = b_scale B (B dense, or
     when B is empty the symmetric matrix with blocks U_j G_k for j < k and Dg_j on the diagonal: the
     generators of superhelix.gravity_force_jacobian, never stored densely); if a/2 + b is positive
-    definite, L = cholesky(a + b) (status 0); else with a kept correction C (corr[corr_start[s]:]) for
+    definite, L = cholesky(a + b) (status 0); else with a kept correction C (packed in corr at corr_start[s]) for
     which a/2 + b + C is, L = cholesky(a + b + C) (status 1); else status 2 (a new eigendecomposition
     is needed: done by the caller).  The Cholesky factors are of the matrices with the dofs reversed
-    (tip first, StrandFactors); L goes to out_data[out_ptr[s]:] (n x n row-major)."""
+    (tip first, StrandFactors); L goes to out_data[out_ptr[s]:] (packed lower triangle)."""
     for s in range(A.shape[0]):
         n = 3 * n_elements[s]
         a = np.empty((n, n))
@@ -223,7 +318,7 @@ def _factor_kernel(A, a_scale, Kd, k_scale, B, U, G, Dg, b_scale, n_elements, co
         if ok:
             L, ok = _try_cholesky(a + b)
         if not ok and corr_start[s] >= 0:
-            C = corr[corr_start[s]:corr_start[s] + n * n].reshape(n, n)[::-1, ::-1]
+            C = _symmetric_reversed(corr, corr_start[s], n)
             L, ok = _try_cholesky(0.5 * a + b + C)
             if ok:
                 L, ok = _try_cholesky(a + b + C)
@@ -233,9 +328,23 @@ def _factor_kernel(A, a_scale, Kd, k_scale, B, U, G, Dg, b_scale, n_elements, co
             continue
         status[s] = st
         o = out_ptr[s]
-        for i in range(n):
-            for j in range(n):
-                out_data[o + i * n + j] = L[i, j]
+        for i in range(n):  # packed lower triangle (StrandFactors)
+            for j in range(i + 1):
+                out_data[o + j] = L[i, j]
+            o += i + 1
+
+
+@njit(cache=True)
+def _symmetric_reversed(data, o, n):
+    """P C P (P the reversal) of the symmetric C whose lower triangle is packed at data[o:] (StepCorrections)."""
+    out = np.empty((n, n))
+    for i in range(n):
+        r = o + i * (i + 1) // 2
+        for j in range(i + 1):
+            v = data[r + j]
+            out[n - 1 - i, n - 1 - j] = v
+            out[n - 1 - j, n - 1 - i] = v
+    return out
 
 
 @njit(cache=True)
@@ -292,8 +401,7 @@ def factor_step_matrix(A: np.ndarray, B, n_elements: np.ndarray,
         dense = np.ascontiguousarray(B, dtype=np.float64)
         U = G = Dg = np.zeros((0, 1, 3, 3))
     if corrections is not None:
-        corr, corr_start = corrections.packed()
-        corr_start = np.ascontiguousarray(corr_start[first:first + S])
+        corr, corr_start = corrections.range_arena(first, first + S)
     else:
         corr, corr_start = np.zeros(0), np.full(S, -1, dtype=np.int64)
     status = np.zeros(S, dtype=np.int64)
@@ -301,6 +409,7 @@ def factor_step_matrix(A: np.ndarray, B, n_elements: np.ndarray,
                    n_elements, corr_start, corr, out.data, np.ascontiguousarray(out.ptr[first:first + S]), status)
     out.corrected[first:first + S] = status > 0
     out.correction_kept[first:first + S] = (status < 2) | (corrections is not None)
+    fresh = []
     for s in np.flatnonzero(status == 2):
         n = 3 * int(n_elements[s])
         a = a_scale * A[s, :n, :n] + np.diag(k_scale * Kd[s, :n])
@@ -312,33 +421,37 @@ def factor_step_matrix(A: np.ndarray, B, n_elements: np.ndarray,
         L = _cholesky(np.ascontiguousarray(m[::-1, ::-1]))  # tip first (StrandFactors)
         if L is None:
             raise np.linalg.LinAlgError(f"strand {first + s}: the step matrix is not positive definite")
-        out.factor(first + s)[:] = L
+        out.set_factor(first + int(s), L)
         if corrections is not None:
-            corrections.set(first + int(s), m - (a + b))
+            fresh.append((first + int(s), m - (a + b)))
+    if fresh:  # the call's new corrections at once: at most one new arena (StepCorrections.store)
+        corrections.store(first, first + S, fresh)
     return out, int(np.count_nonzero(status > 0))
 
 
 @njit(cache=True)
 def _forward(L, b, n):
-    """y = L^-1 b on the first n rows (L lower triangular)."""
+    """y = L^-1 b on the first n rows (L lower triangular, packed rows: StrandFactors)."""
     y = np.empty(n)
     for i in range(n):
         acc = b[i]
+        r = i * (i + 1) // 2
         for k in range(i):
-            acc -= L[i, k] * y[k]
-        y[i] = acc / L[i, i]
+            acc -= L[r + k] * y[k]
+        y[i] = acc / L[r + i]
     return y
 
 
 @njit(cache=True)
 def _backward(L, y, n):
-    """x = L^-T y on the first n rows (column i of L^T is row i of L: contiguous)."""
+    """x = L^-T y on the first n rows (column i of L^T is row i of L: contiguous; packed rows)."""
     x = y[:n].copy()
     for i in range(n - 1, -1, -1):
-        xi = x[i] / L[i, i]
+        r = i * (i + 1) // 2
+        xi = x[i] / L[r + i]
         x[i] = xi
         for k in range(i):
-            x[k] -= L[i, k] * xi
+            x[k] -= L[r + k] * xi
     return x
 
 
@@ -374,9 +487,9 @@ def step_difference_apply(factors: StrandFactors, corrections: StepCorrections |
     if np.any(factors.corrected):
         if corrections is None or not np.all(factors.correction_kept[factors.corrected]):
             raise ValueError("a correction of the step matrix was not kept (StepCorrections)")
-        data, start = corrections.packed()
-        _corrections_apply(data, start, corrections.size, factors.corrected, x.reshape(S, 3 * N),
-                           out.reshape(S, 3 * N))
+        for data, start in corrections.by_arena():
+            _corrections_apply(data, start, corrections.size, factors.corrected, x.reshape(S, 3 * N),
+                               out.reshape(S, 3 * N))
     if a_scale != 1.0:
         out += (a_scale - 1.0) * factors.apply(x.reshape(S, 3 * N)).reshape(S, N, 3)
         out /= a_scale
@@ -410,16 +523,23 @@ def _gravity_jacobian_apply(U, G, Dg, n_elements, scale, x, out):
 
 @njit(cache=True)
 def _corrections_apply(data, start, size, corrected, x, out):
-    """out[s, :n] += C_s x[s, :n] on the strands ``corrected`` (C_s n x n row-major at data[start[s]:])."""
+    """out[s, :n] += C_s x[s, :n] on the strands ``corrected`` with start[s] >= 0 (C_s symmetric, its lower
+    triangle packed at data[start[s]:])."""
+    C = np.empty((x.shape[1], x.shape[1]))
     for s in range(x.shape[0]):
-        if not corrected[s]:
+        if not corrected[s] or start[s] < 0:
             continue
         n = size[s]
         o = start[s]
+        for i in range(n):  # unpacked first: the rows below are read in order
+            r = o + i * (i + 1) // 2
+            for k in range(i + 1):
+                C[i, k] = data[r + k]
+                C[k, i] = data[r + k]
         for i in range(n):
             acc = 0.0
             for k in range(n):
-                acc += data[o + i * n + k] * x[s, k]
+                acc += C[i, k] * x[s, k]
             out[s, i] += acc
 
 
