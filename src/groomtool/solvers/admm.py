@@ -96,8 +96,9 @@ def _factor_strands(strands, strand_ptr, ends_sorted, end_p0, end_p1, cols, vals
     dense; the ends sorted by the columns they reach and taken in FACTOR_BLOCKS blocks, one BLAS product per block
     over its columns only: a Super-Helix contact reaches the dofs up to its element; D_s^-1 from D_data when
     diagonal, from D_inv (laid out like D_data) when dense), symmetrised, then its Cholesky factor
-    (np.linalg.cholesky: LAPACK), row-major at L[L_ptr[s]:] (lower, the upper triangle zeroed).  Returns the first strand whose M_s has a diagonal entry <= 0, or -1 (an M_s that is not
-    positive definite otherwise raises numpy's LinAlgError)."""
+    (np.linalg.cholesky: LAPACK), row-major at L[L_ptr[s]:] (lower, the upper triangle zeroed).  Returns the first
+    strand whose M_s has a diagonal entry <= 0, or -1 (an M_s that is not positive definite otherwise raises
+    numpy's LinAlgError)."""
     for q in range(strands.shape[0]):
         s = strands[q]
         o = dof_offsets[s]
