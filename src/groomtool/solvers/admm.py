@@ -106,10 +106,11 @@ def _factor_strands(strands, strand_ptr, ends_sorted, end_p0, end_p1, cols, vals
         base = L_ptr[s]
         q0 = strand_ptr[s]
         k = strand_ptr[s + 1] - q0
-        width = np.empty(k, dtype=np.int64)  # the columns an end reaches (its panel is sorted)
+        width = np.zeros(k, dtype=np.int64)  # the columns an end reaches
         for qq in range(k):
             e = ends_sorted[q0 + qq]
-            width[qq] = cols[end_p1[e] - 1] - o + 1 if end_p1[e] > end_p0[e] else 0
+            for p in range(end_p0[e], end_p1[e]):
+                width[qq] = max(width[qq], cols[p] - o + 1)
         order = np.argsort(width)
         M = np.zeros((n, n))
         n_blocks = min(FACTOR_BLOCKS, k)
@@ -135,8 +136,8 @@ def _factor_strands(strands, strand_ptr, ends_sorted, end_p0, end_p1, cols, vals
                     M[i, j] += P[i, j]
         d0 = D_ptr[s]
         if D_is_diag[s]:
-            for k in range(n):
-                M[k, k] += 1.0 / D_data[d0 + k]
+            for i in range(n):
+                M[i, i] += 1.0 / D_data[d0 + i]
         else:
             for i in range(n):
                 for j in range(n):
@@ -181,7 +182,7 @@ def _strand_ratios(old, new, ptr, rtol, out):
 
 @njit(cache=True)
 def _carried(cend_ptr, end_strand, g, rtol, out):
-    """out[i] = the common ratio g of contact i's strands when they all have one (equal to rtol), else NaN."""
+    """out[i] = the common ratio g of contact i's strands when they all have one (equal within rtol), else NaN."""
     for i in range(cend_ptr.shape[0] - 1):
         gi = math.nan
         for e in range(cend_ptr[i], cend_ptr[i + 1]):
@@ -208,16 +209,6 @@ def _reusable(strand_ptr, ends_sorted, end_contact, g, g_contact, out):
                 break
             ok = g_contact[end_contact[ends_sorted[q]]] > 0.0
         out[s] = ok
-
-
-@njit(cache=True)
-def _scale_blocks(strands, L_ptr, src, factor, dst):
-    """dst[block s] = factor[s] src[block s] for the strands listed."""
-    for q in range(strands.shape[0]):
-        s = strands[q]
-        f = factor[s]
-        for k in range(L_ptr[s], L_ptr[s + 1]):
-            dst[k] = f * src[k]
 
 
 @njit(cache=True, fastmath=_FM)
