@@ -1,10 +1,15 @@
 """The simulator's memory layout (issue 15): packed step-matrix factors, unstable-mode corrections in exact-size
-arenas (no buffer of the whole groom that doubles)."""
+arenas (no buffer of the whole groom that doubles), and what a step at rest keeps."""
 
 import numpy as np
 
+from groomtool.material import Material
+from groomtool.rods import superhelix as sh
+from groomtool.simulate import SimulationParams, Simulator, simulate
 from groomtool.simulate_linalg import (StepCorrections, StrandFactors, _corrections_apply, factor_step_matrix,
                                        packed_size)
+
+GRAVITY = np.array([0.0, -9.81, 0.0])
 
 
 def unstable_strands(rng, sizes, n_pad):
@@ -79,3 +84,26 @@ def test_corrections_are_kept_in_exact_arenas_per_call_and_regrouped_by_range():
         C = corr.get(s)
         want = np.array([sum(C[i, k] * x[s, k] for k in range(n)) for i in range(n)])
         np.testing.assert_array_equal(got[s, :n], want)
+
+
+def test_a_step_at_rest_keeps_no_geometry_and_simulate_holds_no_old_system():
+    """The kept assembly (AtRestSystem) holds factors, contacts and H but not the assembly's helix, kinematics or
+    free rates; a run with reuse on has the tips of one without to round-off."""
+    n = 6
+    roots = np.zeros((2, 3))
+    roots[1, 0] = 0.01
+    frames = np.repeat(np.eye(3)[None], 2, axis=0)
+    rng = np.random.default_rng(0)
+    helix = sh.SuperHelix(roots, frames, np.full((2, n), 0.02), 0.3 * rng.normal(size=(2, n, 3)))
+    material = Material(young_modulus=1e7)
+    params = SimulationParams(contacts="none", reuse_rotation=1e-7)
+    sim = Simulator(helix, helix.curvatures, material, np.zeros(3), params=params)
+    sim.step()
+    sim.step()
+    assert sim.reused_steps == 1
+    kept = sim._at_rest.system
+    assert kept.kin is None and kept.helix is None and kept.v_free is None and kept.factors is sim._factors
+    res = simulate(helix, helix.curvatures, material, GRAVITY, seconds=5 / 240, params=params)
+    ref = simulate(helix, helix.curvatures, material, GRAVITY, seconds=5 / 240,
+                   params=SimulationParams(contacts="none", reuse_rotation=0.0))
+    np.testing.assert_allclose(res.tips, ref.tips, rtol=0, atol=1e-12)

@@ -29,6 +29,7 @@ starts in equilibrium; they do not follow the motion); the naive run has no such
 
 from __future__ import annotations
 
+import gc
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -273,6 +274,10 @@ def check_groom(outdir, seconds: float = 1.0, dt: float | None = None, contacts:
             report[name] = run_summary(result, inv.helix, inv.stiffness_ratio, chosen)
             if report["contact_radius_m"] is None:
                 report["contact_radius_m"] = result.stats["contact_radius"]
+            # the run's frames, tips and state are summarised: released (and the simulator's reference cycles
+            # collected) before the next run builds its own
+            del result
+            gc.collect()
             if name == "inverted":
                 bar.next_run()
     finally:

@@ -191,7 +191,7 @@ class AtRestSystem:
     """What a step at rest keeps from the last full assembly (Simulator._at_rest_system): the curvatures it was
     built at, its velocity terms A, the generators of its dF/dq (what Mhat holds besides M, with K and the kept
     unstable-mode corrections: no mass matrix is kept) and its system (factors, contacts, H, the contact
-    problem's W)."""
+    problem's W; not its helix, kinematics and free rates, None there)."""
 
     curvatures: np.ndarray
     velocity_terms: np.ndarray | None  # A (S, N, 3), None: dropped
@@ -317,6 +317,7 @@ class Simulator:
         """The strands at the current state and their kinematics, computed once per state (the step that follows a
         state's tips and frames uses the same).  Super-Helices only."""
         if self._geometry is None or self._geometry[0] is not self.state:
+            self._geometry = None  # the last state's kinematics released before the new ones are computed
             helix = self.helix()
             self._geometry = (self.state, helix, sh.kinematics(helix))
         return self._geometry[1], self._geometry[2]
@@ -344,8 +345,9 @@ class Simulator:
         system = self._contact_system(StepSystem(helix=helix, kin=kin, factors=self._factors, v_free=v_free), pose, t0)
         if self._kept is not None:
             kept_all = self._corrections is not None or np.all(self._factors.correction_kept)
-            if kept_all:
-                self._at_rest = AtRestSystem(st.curvatures.copy(), *self._kept, system)
+            if kept_all:  # without its geometry and free rates (a step at rest has its own; ~0.45 GB on harolongo)
+                self._at_rest = AtRestSystem(st.curvatures.copy(), *self._kept,
+                                             replace(system, helix=None, kin=None, v_free=None, stats={}))
             self._kept = None
         return system
 
@@ -727,6 +729,8 @@ def simulate(helix: sh.SuperHelix, rest_curvatures, material: Material, gravity,
                 if not system.stats["solver_converged"]:
                     failed_steps.append(k)
                     failed_residuals.append(system.stats["solver_residual"])
+            if callback is None:
+                system = None  # the last state's kinematics are not held while the new state's are computed
             tips.append(sim.tips())
             if (k + 1) % every == 0 or k + 1 == steps:
                 h_now, kin_now = (sim.helix(), None) if sim.clothoid else sim.geometry()
@@ -734,6 +738,7 @@ def simulate(helix: sh.SuperHelix, rest_curvatures, material: Material, gravity,
                 times.append(sim.state.time)
             if callback is not None:
                 callback(sim, system)
+            system = None  # not held through the next step's assembly
             step_s.append(time.perf_counter() - t_step)
             reporter.step(step_s[-1])
     finally:
