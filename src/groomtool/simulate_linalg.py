@@ -525,22 +525,25 @@ def _gravity_jacobian_apply(U, G, Dg, n_elements, scale, x, out):
 def _corrections_apply(data, start, size, corrected, x, out):
     """out[s, :n] += C_s x[s, :n] on the strands ``corrected`` with start[s] >= 0 (C_s symmetric, its lower
     triangle packed at data[start[s]:])."""
-    C = np.empty((x.shape[1], x.shape[1]))
+    y = np.empty(x.shape[1])
     for s in range(x.shape[0]):
         if not corrected[s] or start[s] < 0:
             continue
         n = size[s]
         o = start[s]
-        for i in range(n):  # unpacked first: the rows below are read in order
-            r = o + i * (i + 1) // 2
-            for k in range(i + 1):
-                C[i, k] = data[r + k]
-                C[k, i] = data[r + k]
+        # one pass over the packed rows: row i gives y_i its terms k <= i and y_k (k < i) its term C[k, i] = C[i, k],
+        # so every y_i is summed over k = 0 .. n - 1 in order (the dense row product's sum, bit for bit)
         for i in range(n):
+            r = o + i * (i + 1) // 2
+            xi = x[s, i]
             acc = 0.0
-            for k in range(n):
-                acc += C[i, k] * x[s, k]
-            out[s, i] += acc
+            for k in range(i):
+                c = data[r + k]
+                acc += c * x[s, k]
+                y[k] += c * xi
+            y[i] = acc + data[r + i] * xi
+        for i in range(n):
+            out[s, i] += y[i]
 
 
 # --------------------------------------------------------------------------- H on the dofs the contacts move
