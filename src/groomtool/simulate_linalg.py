@@ -115,9 +115,11 @@ class StepCorrections:
         return L + np.tril(L, -1).T
 
     def nbytes(self) -> int:
+        """Bytes held by the arenas in use."""
         return sum(a.nbytes for a in self.arenas if a is not None)
 
     def set(self, s: int, correction: np.ndarray) -> None:
+        """Keep strand s's C (store for one strand; factor_step_matrix stores a call's new ones at once)."""
         self.store(s, s + 1, [(s, correction)])
 
     def store(self, first: int, stop: int, items) -> None:
