@@ -232,6 +232,39 @@ def test_a_step_at_rest_without_mass_matrices_is_the_assembled_step(damping):
     np.testing.assert_allclose(kept.v_free, fresh.v_free, rtol=0, atol=1e-11 * np.abs(fresh.v_free).max())
 
 
+def test_a_strand_that_moved_alone_is_assembled_alone_and_the_step_is_the_assembled_one():
+    """Simulator._partial_assembly: at rest but for one strand that turned by more than reuse_rotation, only that
+    strand gets a new M, A, dF/dq and Mhat; the others keep theirs.  With the others exactly where they were
+    assembled (and the same rates) the step equals a full assembly: free rates to round-off, the same contacts and
+    free contact velocities.  The kept parts of the moved strand are replaced: the next step is at rest again."""
+    helix, sphere = draped_strands()
+    material = Material(friction=0.3)
+    rng = np.random.default_rng(3)
+    rates = 1e-2 * rng.normal(size=helix.curvatures.shape) * helix.element_mask[..., None]
+    params = SimulationParams(dt=1 / 240, contacts="all", reuse_rotation=1e-7)
+    sim = Simulator(helix, helix.curvatures, material, GRAVITY, head=sphere, params=params, initial_rates=rates)
+    sim.assemble()
+    moved = helix.curvatures.copy()
+    moved[1] += 1e-3 * rng.normal(size=moved[1].shape) * helix.element_mask[1, :, None]  # strand 1 turned ~1e-4 rad
+    sim.state = State(0.0, moved, rates)
+    partial = sim.assemble()
+    assert sim.partial_steps == 1 and sim.partial_strands == 1 and sim.reused_steps == 0
+    fresh_sim = Simulator(helix, helix.curvatures, material, GRAVITY, head=sphere, initial_rates=rates,
+                          params=SimulationParams(dt=1 / 240, contacts="all", reuse_rotation=0.0))
+    fresh_sim.state = State(0.0, moved, rates)
+    fresh = fresh_sim.assemble()
+    np.testing.assert_allclose(partial.v_free, fresh.v_free, rtol=0, atol=1e-11 * np.abs(fresh.v_free).max())
+    idx = match_contacts(fresh.contacts, partial.contacts, 1e-12)
+    assert np.all(idx >= 0) and len(idx) == len(fresh.contacts.strand_a) == len(partial.contacts.strand_a)
+    b_partial = partial.problem.b.reshape(-1, 3)[idx] * partial.r_scale
+    b_fresh = fresh.problem.b.reshape(-1, 3) * fresh.r_scale
+    np.testing.assert_allclose(b_partial, b_fresh, rtol=0, atol=1e-10 * np.abs(b_fresh).max())
+    np.testing.assert_array_equal(sim._at_rest.curvatures[1], moved[1])  # the moved strand's parts replaced
+    sim.state = State(0.0, moved.copy(), rates)
+    sim.assemble()
+    assert sim.reused_steps == 1 and sim.partial_steps == 1
+
+
 # --------------------------------------------------------------------------- bookkeeping
 class _C:
     def __init__(self, a, b, sa, sb, d=None):

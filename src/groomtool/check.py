@@ -192,6 +192,7 @@ def run_summary(result, helix0: sh.SuperHelix, stiffness_ratio=None, strands=Non
         "detection": {"passes": int(st.get("detection_passes", 0)), "reused": int(st.get("detection_reused", 0)),
                       "head_redetections": int(st.get("head_redetections", 0))},
         "steps_at_rest": int(st.get("steps_at_rest", 0)),
+        "steps_partially_assembled": int(st.get("steps_partially_assembled", 0)),
         "timings_s": {k: float(v) for k, v in result.timings.items()},
     }
 

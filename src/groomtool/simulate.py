@@ -274,6 +274,8 @@ class Simulator:
         self._at_rest: AtRestSystem | None = None  # the last assembly, while the groom stays at rest
         self._kept = None  # (A, dF/dq generators) of the assembly under way, for _at_rest (_keeps_assembly)
         self.reused_steps = 0  # steps that reused the last assembly (_at_rest_system)
+        self.partial_steps = 0  # steps at rest that assembled only the strands that moved (_partial_assembly)
+        self.partial_strands = 0  # strands assembled by those steps, summed
         self._chunks = strand_chunks(self._dof_blocks)
         self._geometry = None  # (state, helix, kinematics) of the last state asked for (geometry())
         self._contacts_on = self.params.contacts == "all" or (self.params.contacts == "head" and head is not None)
@@ -337,8 +339,11 @@ class Simulator:
         t0 = time.perf_counter()
         pose = self.motion.pose(st.time)
         if self._at_rest is not None:
-            if self._still_at_rest(pose):
+            moved = self._moved_strands(pose)
+            if moved is not None and not moved.any():
                 return self._at_rest_system(st, pose, t0)
+            if moved is not None and not moved.all() and self._corrections is not None:
+                return self._partial_assembly(st, pose, t0, moved)
             self._at_rest = None
         dynamics = self._clothoid_dynamics if self.clothoid else self._helix_dynamics
         helix, kin, v_free, t0 = dynamics(st, pose, t0)
@@ -356,17 +361,85 @@ class Simulator:
         Super-Helices (what is kept is small: A and the generators of dF/dq, O(N) per strand)."""
         return bool(self.params.reuse_rotation > 0) and not pose.moving and not self.clothoid
 
-    def _still_at_rest(self, pose) -> bool:
-        """Every element within reuse_rotation of its orientation at the last assembly: an element's frame has
-        turned by at most sum_j l_j |dq_j| over the elements j up to it (dq the curvature change since the
-        assembly).  A groom in motion fails it the step after its assembly (h sum_j l_j |v_j| >= reuse_rotation);
-        one at rest may vibrate at round-off amplitude (the README example's inverted groom: 1e-7 rad a step
-        back and forth) without leaving it."""
+    def _moved_strands(self, pose) -> np.ndarray | None:
+        """Per strand, whether an element has turned by reuse_rotation or more since the strand's last assembly (an
+        element's frame turns by at most sum_j l_j |dq_j| over the elements j up to it, dq the curvature change
+        since then); None with a moving head.  A groom in motion moves every strand the step after an assembly
+        (h sum_j l_j |v_j| >= reuse_rotation); one at rest may vibrate at round-off amplitude (the README example's
+        inverted groom: 1e-7 rad a step back and forth) without moving any, and a few creeping strands move alone
+        (_partial_assembly)."""
         if pose.moving:
-            return False
+            return None
         dq = self.state.curvatures - self._at_rest.curvatures
-        turned = np.max(np.sum(self.lengths * np.linalg.norm(dq, axis=-1), axis=1), initial=0.0)
-        return bool(turned < self.params.reuse_rotation)
+        return np.sum(self.lengths * np.linalg.norm(dq, axis=-1), axis=1) >= self.params.reuse_rotation
+
+    def _partial_assembly(self, st: State, pose, t0: float, moved: np.ndarray) -> StepSystem:
+        """A groom at rest but for the strands ``moved`` (_moved_strands): those get a new M, A, dF/dq generators and
+        factorised Mhat (their kept A, generators and curvatures are replaced), the others keep theirs; the free
+        rates of all from the kept parts as at rest (_free_rates_kept: exact for a strand whose Mhat, A and dF/dq
+        are of one configuration, new or kept), then the contacts, H and the contact problem are made anew and
+        kept.  A full assembly would redo M and Mhat of every strand (harolongo: ~7 s of a step) for one that
+        crept by 1e-7 rad."""
+        p = self.params
+        h = p.dt
+        kept = self._at_rest
+        helix, kin = self.geometry()
+        parts = (sh.gravity_force_jacobian_parts(helix, self.inertia.linear, self.gravity, kin)
+                 if p.implicit_gravity else None)
+        alpha = p.mass_damping + p.air_drag / self.inertia.linear
+        t0 = self._time("dynamics", t0)
+        for a, b in self._chunks:
+            ids = np.flatnonzero(moved[a:b]) + a
+            for run in np.split(ids, np.flatnonzero(np.diff(ids) != 1) + 1) if len(ids) else ():
+                r0, r1 = int(run[0]), int(run[-1]) + 1  # consecutive moved strands
+                M, A = dyn.inertia_terms(helix, self.inertia, kin, rates=st.rates if kept.velocity_terms is not None
+                                         else None, order=p.quadrature_order, root_motion=pose.root_motion,
+                                         strands=(r0, r1))
+                Nc = M.shape[1] // 3
+                if kept.velocity_terms is not None:
+                    kept.velocity_terms[r0:r1] = 0.0
+                    kept.velocity_terms[r0:r1, :Nc] = A
+                if parts is not None:
+                    for old, new in zip(kept.gravity_parts, parts):
+                        old[r0:r1] = new[r0:r1]
+                kept.curvatures[r0:r1] = st.curvatures[r0:r1]
+                t0 = self._time("dynamics", t0)
+                dF = tuple(x[r0:r1, :Nc] for x in parts) if parts is not None else M
+                _, modified = factor_step_matrix(
+                    M, dF, self.n_elements[r0:r1], self._corrections, a_scale=1.0 + h * alpha,
+                    stiffness=self.K[r0:r1, :Nc], k_scale=h * h + h * p.stiffness_damping,
+                    b_scale=-h * h if p.implicit_gravity else 0.0, out=self._factors, first=r0)
+                self.modified_strands += modified
+                t0 = self._time("factor", t0)
+        v_free = self._free_rates_kept(st, helix, kin)
+        self.partial_steps += 1
+        self.partial_strands += int(np.count_nonzero(moved))
+        t0 = self._time("factor", t0)
+        system = self._contact_system(StepSystem(helix=helix, kin=kin, factors=self._factors, v_free=v_free), pose, t0)
+        self._at_rest = AtRestSystem(kept.curvatures, kept.velocity_terms, kept.gravity_parts,
+                                     replace(system, helix=None, kin=None, v_free=None, stats={}))
+        return system
+
+    def _free_rates_kept(self, st: State, helix, kin) -> np.ndarray:
+        """v_free = v + Mhat^-1 (h (F - K (q - q0) - A) - (Mhat - M) v) from the kept A, dF/dq generators, corrections
+        and factors (_at_rest_system)."""
+        p = self.params
+        h = p.dt
+        kept = self._at_rest
+        force = sh.gravity_force(helix, self.inertia.linear, self.gravity, kin) - self.K * (st.curvatures - self.rest)
+        if self.external is not None:
+            force = force + self.external
+        if kept.velocity_terms is not None:
+            force = force - kept.velocity_terms
+        S, N = self.lengths.shape
+        alpha = p.mass_damping + p.air_drag / self.inertia.linear
+        rhs = h * force - step_difference_apply(
+            self._factors, self._corrections, st.rates, a_scale=1.0 + h * alpha, stiffness=self.K,
+            k_scale=h * h + h * p.stiffness_damping, gravity_parts=kept.gravity_parts,
+            b_scale=-h * h if p.implicit_gravity else 0.0)
+        rhs = rhs.reshape(S, 3 * N)
+        rhs[~np.repeat(self.mask, 3, axis=1)] = 0.0
+        return st.rates + self._factors.solve(rhs).reshape(S, N, 3)
 
     def _at_rest_system(self, st: State, pose, t0: float) -> StepSystem:
         """A step at rest (_still_at_rest): the kept A, factorised Mhat, dF/dq generators, contacts and H of the last
@@ -377,24 +450,9 @@ class Simulator:
 
         (Mhat - M) v from K, the dF/dq generators and the kept corrections (simulate_linalg.step_difference_apply).
         b = H v_free + w.  Exact up to the change of M, A, Mhat and H over reuse_rotation (relative ~1e-7)."""
-        p = self.params
-        h = p.dt
         kept = self._at_rest.system
         helix, kin = self.geometry()
-        force = sh.gravity_force(helix, self.inertia.linear, self.gravity, kin) - self.K * (st.curvatures - self.rest)
-        if self.external is not None:
-            force = force + self.external
-        if self._at_rest.velocity_terms is not None:
-            force = force - self._at_rest.velocity_terms
-        S, N = self.lengths.shape
-        alpha = p.mass_damping + p.air_drag / self.inertia.linear
-        rhs = h * force - step_difference_apply(
-            kept.factors, self._corrections, st.rates, a_scale=1.0 + h * alpha, stiffness=self.K,
-            k_scale=h * h + h * p.stiffness_damping, gravity_parts=self._at_rest.gravity_parts,
-            b_scale=-h * h if p.implicit_gravity else 0.0)
-        rhs = rhs.reshape(S, 3 * N)
-        rhs[~np.repeat(self.mask, 3, axis=1)] = 0.0
-        v_free = st.rates + kept.factors.solve(rhs).reshape(S, N, 3)
+        v_free = self._free_rates_kept(st, helix, kin)
         system = StepSystem(helix=helix, kin=kin, factors=kept.factors, v_free=v_free)
         self.reused_steps += 1
         t0 = self._time("at_rest", t0)
@@ -760,6 +818,8 @@ def simulate(helix: sh.SuperHelix, rest_curvatures, material: Material, gravity,
              "detection_reused": tracker.reused if tracker is not None else 0,
              "head_redetections": tracker.head_redetections if tracker is not None else 0,
              "steps_at_rest": sim.reused_steps,
+             "steps_partially_assembled": sim.partial_steps,
+             "strands_partially_assembled": sim.partial_strands,
              "model": "clothoid" if sim.clothoid else "superhelix",
              "velocity_terms": sim.velocity_terms}
     return SimulationResult(times=np.array(times), frames=np.stack(frames), offsets=offsets, tips=np.stack(tips),
