@@ -55,3 +55,27 @@ def test_pack_HD_equals_the_sparse_product(seed, m, n_strands, kinds):
                                                              & (H[3 * i:3 * i + 3].indices < offsets[s + 1])]))
                      for s in touched)
         assert len(cols) == expect
+
+
+def test_assembled_w_is_kept_for_a_problem_with_another_free_velocity():
+    """AssembledOperator.from_problem keeps W's upper blocks in the problem's cache (per order): the problem of
+    with_free_velocity (a simulator step at rest) reuses them with its own b, and its velocities are W r + b'."""
+    from groomtool.solvers.gauss_seidel import AssembledOperator
+
+    rng = np.random.default_rng(5)
+    m, sizes = 12, np.array([5, 7, 4])
+    offsets = np.concatenate([[0], np.cumsum(sizes)])
+    H = sp.random(3 * m, int(offsets[-1]), density=0.4, random_state=rng, format="csr")
+    blocks = [np.diag(rng.uniform(0.5, 2.0, k)) + 0.1 for k in sizes]
+    P = ContactProblem(H, blocks, offsets, 0.01, rng.normal(size=3 * m), 0.3)
+    order = rng.permutation(m)
+    first = AssembledOperator.from_problem(P, order)
+    other = P.with_free_velocity(rng.normal(size=3 * m))
+    second = AssembledOperator.from_problem(other, order)
+    assert second.W is first.W
+    assert AssembledOperator.from_problem(other, None).W is not first.W  # another order: assembled anew
+    D = sp.block_diag(P.D_blocks).toarray()
+    W = H.toarray() @ D @ H.toarray().T + 0.02 * np.eye(3 * m)
+    r = rng.normal(size=3 * m)
+    np.testing.assert_allclose(second.to_external(second.velocity(second.to_internal(r))),
+                               W @ r + other.b, rtol=0, atol=1e-12 * np.abs(W @ r).max())

@@ -371,7 +371,8 @@ class Simulator:
         if pose.moving:
             return None
         dq = self.state.curvatures - self._at_rest.curvatures
-        return np.sum(self.lengths * np.linalg.norm(dq, axis=-1), axis=1) >= self.params.reuse_rotation
+        turned = np.einsum("sn,sn->s", self.lengths, np.sqrt(np.einsum("snk,snk->sn", dq, dq)))
+        return turned >= self.params.reuse_rotation
 
     def _partial_assembly(self, st: State, pose, t0: float, moved: np.ndarray) -> StepSystem:
         """A groom at rest but for the strands ``moved`` (_moved_strands): those get a new M, A, dF/dq generators and
@@ -384,8 +385,14 @@ class Simulator:
         h = p.dt
         kept = self._at_rest
         helix, kin = self.geometry()
-        parts = (sh.gravity_force_jacobian_parts(helix, self.inertia.linear, self.gravity, kin)
-                 if p.implicit_gravity else None)
+        if p.implicit_gravity:  # the moved strands' generators, into the kept ones (the others keep theirs)
+            ids = np.flatnonzero(moved)
+            sub = helix.subset(ids)
+            n = sub.max_elements
+            for old, new in zip(kept.gravity_parts, sh.gravity_force_jacobian_parts(
+                    sub, self.inertia.linear, self.gravity, sh.kinematics(sub))):
+                old[ids] = 0.0
+                old[ids, :n] = new
         alpha = p.mass_damping + p.air_drag / self.inertia.linear
         t0 = self._time("dynamics", t0)
         for a, b in self._chunks:
@@ -399,12 +406,9 @@ class Simulator:
                 if kept.velocity_terms is not None:
                     kept.velocity_terms[r0:r1] = 0.0
                     kept.velocity_terms[r0:r1, :Nc] = A
-                if parts is not None:
-                    for old, new in zip(kept.gravity_parts, parts):
-                        old[r0:r1] = new[r0:r1]
                 kept.curvatures[r0:r1] = st.curvatures[r0:r1]
                 t0 = self._time("dynamics", t0)
-                dF = tuple(x[r0:r1, :Nc] for x in parts) if parts is not None else M
+                dF = tuple(x[r0:r1, :Nc] for x in kept.gravity_parts) if p.implicit_gravity else M
                 _, modified = factor_step_matrix(
                     M, dF, self.n_elements[r0:r1], self._corrections, a_scale=1.0 + h * alpha,
                     stiffness=self.K[r0:r1, :Nc], k_scale=h * h + h * p.stiffness_damping,

@@ -346,13 +346,21 @@ class AssembledOperator:
 
     @classmethod
     def from_problem(cls, problem, order: np.ndarray | None = None) -> "AssembledOperator":
-        """From a ContactProblem, assembling W's upper blocks strand by strand (blocks.assemble_upper)."""
+        """From a ContactProblem, assembling W's upper blocks strand by strand (blocks.assemble_upper).  The blocks
+        are kept in the problem's cache (for this order), which the problems of ContactProblem.with_free_velocity
+        share: a simulator step at rest solves with the kept W and its own b without assembling W again."""
         source = problem
+        cached = source._cache.get("upper")
+        if cached is not None and ((order is None and cached[0] is None) or (
+                order is not None and cached[0] is not None and np.array_equal(cached[0], order))):
+            return cls(cached[1], source.b, source.mu, order)
         if order is not None:
             rows = _expand_order(np.asarray(order, dtype=np.int64))
             problem = type(problem)(problem.H[rows], problem.D_blocks, problem.dof_offsets, problem.gamma,
                                     problem.b, problem.mu)  # only H is permuted here: __init__ permutes b, mu
-        op = cls(assemble_upper(problem), source.b, source.mu, order)
+        W = assemble_upper(problem)
+        source._cache["upper"] = (None if order is None else np.array(order, dtype=np.int64), W)
+        op = cls(W, source.b, source.mu, order)
         if "diag" not in source._cache:  # share the diagonal blocks (saves forming H D for rho)
             diag = op.diag if order is None else np.empty_like(op.diag)
             if order is not None:
