@@ -47,6 +47,15 @@ def test_packed_factors_solve_apply_and_inverse_like_dense_ones():
         np.testing.assert_array_equal(y[s, n:], x[s, n:])
         for k in (1, n // 2, n):
             np.testing.assert_allclose(f.leading_inverse(s, k), np.linalg.inv(M)[:k, :k], rtol=1e-10, atol=1e-14)
+    # right-hand sides on the leading dofs only (H^T r up to a strand's farthest contact), and zero ones: the solve
+    # skips the zeros towards the tip (or the whole strand) with the same result
+    lead = x.copy()
+    lead[:, 4:] = 0.0
+    lead[2] = 0.0
+    y = f.solve(lead)
+    for s, (n, M) in enumerate(zip(3 * n_el, dense)):
+        np.testing.assert_allclose(y[s, :n], np.linalg.solve(M, lead[s, :n]), rtol=1e-12, atol=1e-14)
+    assert np.all(y[2] == 0.0)
 
 
 def test_corrections_are_kept_in_exact_arenas_per_call_and_regrouped_by_range():

@@ -239,11 +239,22 @@ def _trailing_block(data, o, n, k):
 
 @njit(cache=True)
 def _solve_kernel(data, ptr, sizes, rhs, out):
-    """x = P (L L^T)^-1 P rhs per strand (L stored tip first, P the reversal)."""
+    """x = P (L L^T)^-1 P rhs per strand (L stored tip first, P the reversal).  A zero rhs gives x = 0 without a
+    solve, and the forward substitution starts at the first non-zero of P rhs (a right-hand side H^T r on the
+    dofs up to a strand's farthest contact is zero towards the tip): the same x."""
     for s in range(sizes.shape[0]):
         n = sizes[s]
+        first = n
+        for i in range(n):
+            if rhs[s, n - 1 - i] != 0.0:
+                first = i
+                break
+        if first == n:
+            for i in range(n):
+                out[s, i] = 0.0
+            continue
         L = data[ptr[s]:ptr[s + 1]]
-        y = _forward(L, rhs[s, :n][::-1].copy(), n)
+        y = _forward_from(L, rhs[s, :n][::-1].copy(), n, first)
         x = _backward(L, y, n)
         for i in range(n):
             out[s, i] = x[n - 1 - i]
@@ -432,13 +443,14 @@ def factor_step_matrix(A: np.ndarray, B, n_elements: np.ndarray,
 
 
 @njit(cache=True)
-def _forward(L, b, n):
-    """y = L^-1 b on the first n rows (L lower triangular, packed rows: StrandFactors)."""
-    y = np.empty(n)
-    for i in range(n):
+def _forward_from(L, b, n, first):
+    """y = L^-1 b on the first n rows when b[:first] = 0 (then y[:first] = 0): the rows from ``first`` on, over the
+    columns from ``first`` on (L lower triangular, packed rows: StrandFactors)."""
+    y = np.zeros(n)
+    for i in range(first, n):
         acc = b[i]
         r = i * (i + 1) // 2
-        for k in range(i):
+        for k in range(first, i):
             acc -= L[r + k] * y[k]
         y[i] = acc / L[r + i]
     return y
