@@ -386,13 +386,13 @@ class Simulator:
         kept = self._at_rest
         helix, kin = self.geometry()
         if p.implicit_gravity:  # the moved strands' generators, into the kept ones (the others keep theirs)
-            ids = np.flatnonzero(moved)
-            sub = helix.subset(ids)
+            moved_ids = np.flatnonzero(moved)
+            sub = helix.subset(moved_ids)
             n = sub.max_elements
             for old, new in zip(kept.gravity_parts, sh.gravity_force_jacobian_parts(
                     sub, self.inertia.linear, self.gravity, sh.kinematics(sub))):
-                old[ids] = 0.0
-                old[ids, :n] = new
+                old[moved_ids] = 0.0
+                old[moved_ids, :n] = new
         alpha = p.mass_damping + p.air_drag / self.inertia.linear
         t0 = self._time("dynamics", t0)
         for a, b in self._chunks:
