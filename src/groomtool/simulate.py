@@ -88,9 +88,10 @@ class SimulationParams:
     contact set of a detection pass is kept while no sample moved by more than half of it
     (simulate_contacts.py); 0 detects every step.  reuse_rotation (rad, 0: off): a Super-Helix groom at rest
     (static head; no element turned by more than this since the last assembly) keeps that assembly's
-    factorised Mhat, A, dF/dq generators, contacts and H (Simulator._at_rest_system; no M).  solver, solver_tolerance, max_sweeps,
-    solver_symmetric and solver_anderson: the Coulomb solve of each step (solver_symmetric: forward + backward
-    sweeps; solver_anderson: the Anderson memory, 0 none).
+    factorised Mhat, A, dF/dq generators, contacts and H (Simulator._at_rest_system; no M; only the strands that
+    moved are assembled again: _partial_assembly).  solver, solver_tolerance, max_sweeps, solver_symmetric and
+    solver_anderson: the Coulomb solve of each step (solver_symmetric: forward + backward sweeps; solver_anderson:
+    the Anderson memory, 0 none).
     """
 
     dt: float = 1.0 / 240.0
@@ -447,8 +448,8 @@ class Simulator:
 
     def _at_rest_system(self, st: State, pose, t0: float) -> StepSystem:
         """A step at rest (no strand moved: _moved_strands): the kept A, factorised Mhat, dF/dq generators, contacts
-        and H of the last assembly, with this step's F(q), K (q - q0) and rates.  v_free = Mhat^-1 (M v + h (F - K (q - q0) - A))
-        written without M (none is kept, so any groom can reuse, harolongo's 1-3 GB of mass matrices included):
+        and H of the last assembly, with this step's F(q), K (q - q0) and rates.
+        v_free = Mhat^-1 (M v + h (F - K (q - q0) - A)) written without M (none is kept, so any groom can reuse, harolongo's 1-3 GB of mass matrices included):
 
             v_free = v + Mhat^-1 (h (F - K (q - q0) - A) - (Mhat - M) v),
 
