@@ -449,7 +449,8 @@ class Simulator:
     def _at_rest_system(self, st: State, pose, t0: float) -> StepSystem:
         """A step at rest (no strand moved: _moved_strands): the kept A, factorised Mhat, dF/dq generators, contacts
         and H of the last assembly, with this step's F(q), K (q - q0) and rates.
-        v_free = Mhat^-1 (M v + h (F - K (q - q0) - A)) written without M (none is kept, so any groom can reuse, harolongo's 1-3 GB of mass matrices included):
+        v_free = Mhat^-1 (M v + h (F - K (q - q0) - A)) written without M (none is kept, so any groom can reuse,
+        harolongo's 1-3 GB of mass matrices included):
 
             v_free = v + Mhat^-1 (h (F - K (q - q0) - A) - (Mhat - M) v),
 
