@@ -259,6 +259,10 @@ def test_a_strand_that_moved_alone_is_assembled_alone_and_the_step_is_the_assemb
     b_partial = partial.problem.b.reshape(-1, 3)[idx] * partial.r_scale
     b_fresh = fresh.problem.b.reshape(-1, 3) * fresh.r_scale
     np.testing.assert_allclose(b_partial, b_fresh, rtol=0, atol=1e-10 * np.abs(b_fresh).max())
+    # W: the unmoved strands' D blocks taken from the kept problem, the moved one's new: those of a full assembly
+    assert len(partial.problem.D_blocks) == len(fresh.problem.D_blocks)
+    for mine, theirs in zip(partial.problem.D_blocks, fresh.problem.D_blocks):
+        np.testing.assert_allclose(mine, theirs, rtol=0, atol=1e-11 * np.abs(theirs).max())
     np.testing.assert_array_equal(sim._at_rest.curvatures[1], moved[1])  # the moved strand's parts replaced
     sim.state = State(0.0, moved.copy(), rates)
     sim.assemble()

@@ -185,6 +185,8 @@ class StepSystem:
     r0: np.ndarray | None = None
     w: np.ndarray | None = None  # (3m,) the contact velocities that do not depend on v' (moving head, -ubar)
     stats: dict = field(default_factory=dict)
+    # per strand the dofs its contacts move (k_s) and its block (Mhat_s^-1)[:k_s, :k_s] of the problem's D (views)
+    leading: tuple | None = None
 
 
 @dataclass
@@ -420,7 +422,8 @@ class Simulator:
         self.partial_steps += 1
         self.partial_strands += int(np.count_nonzero(moved))
         t0 = self._time("factor", t0)
-        system = self._contact_system(StepSystem(helix=helix, kin=kin, factors=self._factors, v_free=v_free), pose, t0)
+        system = self._contact_system(StepSystem(helix=helix, kin=kin, factors=self._factors, v_free=v_free), pose, t0,
+                                      refactored=moved)
         self._at_rest = AtRestSystem(kept.curvatures, kept.velocity_terms, kept.gravity_parts,
                                      replace(system, helix=None, kin=None, v_free=None, stats={}))
         return system
@@ -568,8 +571,9 @@ class Simulator:
         out[:, 1:] += off * d[:, :-1]
         return out
 
-    def _contact_system(self, system: StepSystem, pose, t0: float) -> StepSystem:
-        """Contacts (detected or kept), H and the scaled contact problem of the step (both models)."""
+    def _contact_system(self, system: StepSystem, pose, t0: float, refactored: np.ndarray | None = None) -> StepSystem:
+        """Contacts (detected or kept), H and the scaled contact problem of the step (both models).  ``refactored``
+        (a partial assembly): the strands whose Mhat is new; the others' D blocks may come from the kept problem."""
         st = self.state
         helix, kin = system.helix, system.kin
         if not self._contacts_on:
@@ -594,11 +598,11 @@ class Simulator:
             w = np.einsum("mij,mj->mi", contacts.frame, np.cross(pose.Omega, contacts.point_a - contacts.point_b))
         w[:, 0] -= ubar
         system.H = H
-        self._build_problem(system, w.ravel())
+        self._build_problem(system, w.ravel(), refactored)
         self._time("contact_setup", t0)
         return system
 
-    def _build_problem(self, system: StepSystem, w: np.ndarray) -> None:
+    def _build_problem(self, system: StepSystem, w: np.ndarray, refactored: np.ndarray | None = None) -> None:
         """The contact problem u~ = W r~ + b~ with W = H Mhat^-1 H^T (dense Mhat^-1 blocks only for the
         strands in contact, and of those only on the dofs up to their farthest contact's element), in
         impulse units r = r_scale r~, u = r_scale u~ (the block Gauss-Seidel normalises every local
@@ -620,13 +624,18 @@ class Simulator:
         system.w = w
         b = H @ helix.to_flat(system.v_free).ravel() + w
         touched = np.flatnonzero(k > 0)
-        blocks = [system.factors.leading_inverse(s, int(k[s])) for s in touched]
+        # a partial assembly: a strand whose Mhat was kept and whose contacts move as many dofs as in the kept problem
+        # has the same block (the same factor, the same k): taken from there instead of inverted again
+        kept = self._at_rest.system.leading if refactored is not None and self._at_rest is not None else None
+        blocks = [kept[1][s] if kept is not None and not refactored[s] and kept[0][s] == k[s] and s in kept[1]
+                  else system.factors.leading_inverse(s, int(k[s])) for s in touched]
         g = float(np.linalg.norm(self.gravity))
         r_scale = self.inertia.linear * float(np.mean(helix.strand_lengths)) * max(g * self.params.dt, 1e-3)
         mu = np.full(len(system.contacts.strand_a), self.friction)
         system.problem = ContactProblem(H=H_moved, D_blocks=blocks,
                                         dof_offsets=np.concatenate([[0], np.cumsum(k[touched])]), gamma=0.0,
                                         b=b / r_scale, mu=mu)
+        system.leading = (k, dict(zip(touched.tolist(), system.problem.D_blocks)))
         system.r_scale = system.u_scale = r_scale
         system.r0 = (self.tracker.initial_impulses(system.contacts) / r_scale).ravel()
 
