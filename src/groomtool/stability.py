@@ -504,14 +504,15 @@ def contact_load_hessians(helix: sh.SuperHelix, strands, point_strand, point_s, 
     Super Space Clothoids: central differences of the exact generalized force
     (contact.jacobian.point_forces_generalized), a step of ``rotation_step`` radians per node (truncation
     O(step^2), round-off O(eps / step), about 1e-10 relative), symmetrised, at most ``chunk_dofs`` perturbed
-    copies at once (:func:`_clothoid_load_hessians`).  (The same differences for Super-Helices are the test
-    oracle tests/reference/stability.py.)"""
+    copies at once (:func:`finite_difference_load_hessians`, also the tests' oracle for Super-Helices)."""
+    if isinstance(helix, cl.SuperClothoid):
+        return finite_difference_load_hessians(helix, strands, point_strand, point_s, point_force, rotation_step,
+                                               chunk_dofs)
     strands = np.asarray(strands, dtype=np.int64)
     point_strand = np.asarray(point_strand, dtype=np.int64)
     order = np.argsort(point_strand, kind="stable")
-    ps, pss, pf = point_strand[order], np.asarray(point_s, float)[order], np.asarray(point_force, float).reshape(-1, 3)[order]
-    if isinstance(helix, cl.SuperClothoid):
-        return _clothoid_load_hessians(helix, strands, ps, pss, pf, rotation_step, chunk_dofs)
+    ps, pss = point_strand[order], np.asarray(point_s, float)[order]
+    pf = np.asarray(point_force, float).reshape(-1, 3)[order]
     out = [None] * len(strands)
     by_length = np.argsort(helix.n_elements[strands], kind="stable")  # similar lengths together: less padding
     for start in range(0, len(strands), chunk):
@@ -542,36 +543,50 @@ def _assemble_one(U, A, diag, i, m: int) -> np.ndarray:
     return full
 
 
-def _clothoid_load_hessians(helix: cl.SuperClothoid, strands, ps, pss, pf, rotation_step: float,
-                            chunk_dofs: int) -> list:
-    """contact_load_hessians for Super Space Clothoids (points sorted by strand): central differences of
-    point_forces_generalized, a step of rotation_step / (mean length of the node's elements) per node dof."""
+def finite_difference_load_hessians(helix, strands, point_strand, point_s, point_force,
+                                    rotation_step: float = 1e-6, chunk_dofs: int = 6000) -> list:
+    """contact_load_hessians by central differences of the exact generalized force
+    (contact.jacobian.point_forces_generalized), for either model: a step of ``rotation_step`` radians per dof
+    (dq_j = rotation_step / l_j for a Super-Helix element, / the mean length of a clothoid node's elements),
+    truncation O(step^2), round-off O(eps / step), about 1e-10 relative; symmetrised (it is a Hessian).  2n
+    perturbed copies of each strand, at most ``chunk_dofs`` at once.  What the package uses for Super Space
+    Clothoids, and the tests' oracle for the analytic Super-Helix Hessian."""
     from .contact.jacobian import point_forces_generalized
 
+    clothoid = isinstance(helix, cl.SuperClothoid)
+    mod = cl if clothoid else sh
+    extra = 1 if clothoid else 0  # a clothoid's dofs are its N + 1 nodes
+    strands = np.asarray(strands, dtype=np.int64)
+    point_strand = np.asarray(point_strand, dtype=np.int64)
+    order = np.argsort(point_strand, kind="stable")
+    ps, pss = point_strand[order], np.asarray(point_s, float)[order]
+    pf = np.asarray(point_force, float).reshape(-1, 3)[order]
     out = [None] * len(strands)
     start = 0
     while start < len(strands):
         stop, copies = start, 0
-        while stop < len(strands) and (copies == 0 or copies + 6 * (helix.n_elements[strands[stop]] + 1)
+        while stop < len(strands) and (copies == 0 or copies + 6 * (helix.n_elements[strands[stop]] + extra)
                                        <= chunk_dofs):
-            copies += 6 * (int(helix.n_elements[strands[stop]]) + 1)
+            copies += 6 * (int(helix.n_elements[strands[stop]]) + extra)
             stop += 1
         ids = strands[start:stop]
         sub = helix.subset(ids)
-        N = sub.max_elements + 1
+        N = sub.max_elements + extra
         owner, signs, dofs = [], [], []
         for i in range(len(ids)):
-            n = 3 * (int(sub.n_elements[i]) + 1)
+            n = 3 * (int(sub.n_elements[i]) + extra)
             owner.append(np.full(2 * n, i))
             signs.append(np.repeat([1.0, -1.0], n))
             dofs.append(np.tile(np.arange(n), 2))
         owner, signs, dofs = np.concatenate(owner), np.concatenate(signs), np.concatenate(dofs)
         elem, comp = dofs // 3, dofs % 3
-        # node i: the mean length of its (one or two) elements
-        lpad = np.concatenate([np.zeros((len(ids), 1)), sub.lengths, np.zeros((len(ids), 1))], axis=1)
-        both = lpad[:, :-1] + lpad[:, 1:]
-        nadj = (lpad[:, :-1] > 0).astype(float) + (lpad[:, 1:] > 0)
-        step = rotation_step / (both / np.maximum(nadj, 1.0))[owner, elem]
+        if clothoid:  # node i: the mean length of its (one or two) elements
+            lpad = np.concatenate([np.zeros((len(ids), 1)), sub.lengths, np.zeros((len(ids), 1))], axis=1)
+            both = lpad[:, :-1] + lpad[:, 1:]
+            nadj = (lpad[:, :-1] > 0).astype(float) + (lpad[:, 1:] > 0)
+            step = rotation_step / (both / np.maximum(nadj, 1.0))[owner, elem]
+        else:
+            step = rotation_step / sub.lengths[owner, elem]
         q = sub.curvatures[owner].copy()
         q[np.arange(len(owner)), elem, comp] += signs * step
         copies_helix = type(sub)(sub.root_positions[owner], sub.root_frames[owner], sub.lengths[owner], q,
@@ -584,11 +599,11 @@ def _clothoid_load_hessians(helix: cl.SuperClothoid, strands, ps, pss, pf, rotat
         first = np.repeat(lo[owner], count)
         within = np.arange(len(copy_of_point)) - np.repeat(np.cumsum(count) - count, count)
         pidx = first + within
-        g = point_forces_generalized(copies_helix, cl.kinematics(copies_helix), copy_of_point, pss[pidx], pf[pidx])
+        g = point_forces_generalized(copies_helix, mod.kinematics(copies_helix), copy_of_point, pss[pidx], pf[pidx])
         g = g.reshape(len(owner), 3 * N)
         pos = 0
         for i in range(len(ids)):
-            n = 3 * (int(sub.n_elements[i]) + 1)
+            n = 3 * (int(sub.n_elements[i]) + extra)
             plus, minus = g[pos:pos + n, :n], g[pos + n:pos + 2 * n, :n]
             h = step[pos:pos + n]
             D = ((plus - minus) / (2.0 * h[:, None])).T  # column k: d g / d q_k
