@@ -42,6 +42,7 @@ from numba import njit
 
 from . import residual as _res
 from .anderson import AndersonMixer
+from .blocks import symmetrize_add_diagonal
 from .cones import SOC, project_cone
 
 _FM = {"contract", "arcp", "nsz"}
@@ -238,12 +239,7 @@ def _contact_diagonal(contacts, cend_ptr, end_strand, end_p0, end_p1, cols, vals
                         for x in range(3):
                             for y in range(3):
                                 out[i, x, y] += vals[p, x] * d * vals[p2, y]
-        for x in range(3):
-            for y in range(x + 1, 3):
-                t = 0.5 * (out[i, x, y] + out[i, y, x])
-                out[i, x, y] = t
-                out[i, y, x] = t
-            out[i, x, x] += gamma2
+        symmetrize_add_diagonal(out, i, gamma2)
 
 
 @njit(cache=True, fastmath=_FM)

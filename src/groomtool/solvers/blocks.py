@@ -623,6 +623,18 @@ def _rows_from_pairs(m, pi, pj, pb, gamma2):
     return out_ptr, cols[:w].copy(), blocks[:w].copy()
 
 
+@njit(cache=True)
+def symmetrize_add_diagonal(out, i, gamma2):
+    """out[i] <- (out[i] + out[i]^T) / 2 + gamma2 I: a contact's 3 x 3 diagonal block of W, accumulated
+    unsymmetrically, made exactly symmetric and given its 2 gamma I."""
+    for x in range(3):
+        for y in range(x + 1, 3):
+            t = 0.5 * (out[i, x, y] + out[i, y, x])
+            out[i, x, y] = t
+            out[i, y, x] = t
+        out[i, x, x] += gamma2
+
+
 @njit(cache=True, fastmath=_FM)
 def _diagonal_from_packed(h_ptr, h_cols, h_vals, g_ptr, g_cols, g_vals, gamma2, out):
     """out_i = sum_q G_i[q] H_i[q]^T + 2 gamma I (merge of the two sorted column lists)."""
@@ -646,12 +658,7 @@ def _diagonal_from_packed(h_ptr, h_cols, h_vals, g_ptr, g_cols, g_vals, gamma2, 
                         out[i, x, y] += gx * h_vals[p, y]
                 p += 1
                 q += 1
-        for x in range(3):
-            for y in range(x + 1, 3):
-                t = 0.5 * (out[i, x, y] + out[i, y, x])
-                out[i, x, y] = t
-                out[i, y, x] = t
-            out[i, x, x] += gamma2
+        symmetrize_add_diagonal(out, i, gamma2)
 
 
 def diagonal_blocks(H: "PackedRows", G: "PackedRows", gamma: float) -> np.ndarray:
