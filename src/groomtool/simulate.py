@@ -364,6 +364,15 @@ class Simulator:
         Super-Helices (what is kept is small: A and the generators of dF/dq, O(N) per strand)."""
         return bool(self.params.reuse_rotation > 0) and not pose.moving and not self.clothoid
 
+    def _step_scales(self) -> dict:
+        """a_scale, k_scale, b_scale of Mhat = a M + k K + b dF/dq (+ C): 1 + h alpha, h^2 + h beta, -h^2 (0 with
+        explicit gravity); alpha = mass damping + air drag / rhoS, beta = stiffness damping."""
+        p = self.params
+        h = p.dt
+        alpha = p.mass_damping + p.air_drag / self.inertia.linear
+        return {"a_scale": 1.0 + h * alpha, "k_scale": h * h + h * p.stiffness_damping,
+                "b_scale": -h * h if p.implicit_gravity else 0.0}
+
     def _moved_strands(self, pose) -> np.ndarray | None:
         """Per strand, whether an element has turned by reuse_rotation or more since the strand's last assembly (an
         element's frame turns by at most sum_j l_j |dq_j| over the elements j up to it, dq the curvature change
@@ -385,7 +394,6 @@ class Simulator:
         kept.  A full assembly would redo M and Mhat of every strand (harolongo: ~7 s of a step) for one that
         crept by 1e-7 rad."""
         p = self.params
-        h = p.dt
         kept = self._at_rest
         helix, kin = self.geometry()
         if p.implicit_gravity:  # the moved strands' generators, into the kept ones (the others keep theirs)
@@ -396,7 +404,6 @@ class Simulator:
                     sub, self.inertia.linear, self.gravity, sh.kinematics(sub))):
                 old[moved_ids] = 0.0
                 old[moved_ids, :n] = new
-        alpha = p.mass_damping + p.air_drag / self.inertia.linear
         t0 = self._time("dynamics", t0)
         for a, b in self._chunks:
             ids = np.flatnonzero(moved[a:b]) + a
@@ -412,10 +419,9 @@ class Simulator:
                 kept.curvatures[r0:r1] = st.curvatures[r0:r1]
                 t0 = self._time("dynamics", t0)
                 dF = tuple(x[r0:r1, :Nc] for x in kept.gravity_parts) if p.implicit_gravity else M
-                _, modified = factor_step_matrix(
-                    M, dF, self.n_elements[r0:r1], self._corrections, a_scale=1.0 + h * alpha,
-                    stiffness=self.K[r0:r1, :Nc], k_scale=h * h + h * p.stiffness_damping,
-                    b_scale=-h * h if p.implicit_gravity else 0.0, out=self._factors, first=r0)
+                _, modified = factor_step_matrix(M, dF, self.n_elements[r0:r1], self._corrections,
+                                                 stiffness=self.K[r0:r1, :Nc], out=self._factors, first=r0,
+                                                 **self._step_scales())
                 self.modified_strands += modified
                 t0 = self._time("factor", t0)
         v_free = self._free_rates_kept(st, helix, kin)
@@ -440,11 +446,8 @@ class Simulator:
         if kept.velocity_terms is not None:
             force = force - kept.velocity_terms
         S, N = self.lengths.shape
-        alpha = p.mass_damping + p.air_drag / self.inertia.linear
-        rhs = h * force - step_difference_apply(
-            self._factors, self._corrections, st.rates, a_scale=1.0 + h * alpha, stiffness=self.K,
-            k_scale=h * h + h * p.stiffness_damping, gravity_parts=kept.gravity_parts,
-            b_scale=-h * h if p.implicit_gravity else 0.0)
+        rhs = h * force - step_difference_apply(self._factors, self._corrections, st.rates, stiffness=self.K,
+                                                gravity_parts=kept.gravity_parts, **self._step_scales())
         rhs = rhs.reshape(S, 3 * N)
         rhs[~np.repeat(self.mask, 3, axis=1)] = 0.0
         return st.rates + self._factors.solve(rhs).reshape(S, N, 3)
@@ -488,7 +491,6 @@ class Simulator:
         parts = (sh.gravity_force_jacobian_parts(helix, self.inertia.linear, self.gravity, kin)
                  if p.implicit_gravity else None)
         S, N = self.lengths.shape
-        alpha = p.mass_damping + p.air_drag / self.inertia.linear
         force = F - self.K * (st.curvatures - self.rest)
         if self.external is not None:
             force = force + self.external
@@ -510,9 +512,8 @@ class Simulator:
                 A_all[a:b, :Nc] = A
             t0 = self._time("dynamics", t0)
             dF = tuple(x[a:b, :Nc] for x in parts) if parts is not None else M
-            _, modified = factor_step_matrix(M, dF, self.n_elements[a:b], self._corrections, a_scale=1.0 + h * alpha,
-                                             stiffness=self.K[a:b, :Nc], k_scale=h * h + h * p.stiffness_damping,
-                                             b_scale=-h * h if p.implicit_gravity else 0.0, out=self._factors, first=a)
+            _, modified = factor_step_matrix(M, dF, self.n_elements[a:b], self._corrections, stiffness=self.K[a:b, :Nc],
+                                             out=self._factors, first=a, **self._step_scales())
             self.modified_strands += modified
             t0 = self._time("factor", t0)
         rhs[~np.repeat(self.mask, 3, axis=1)] = 0.0
