@@ -147,11 +147,6 @@ class ContactJacobianOperator:
     def T(self) -> "_Transposed":
         return _Transposed(self)
 
-    def as_linear_operator(self):
-        from scipy.sparse.linalg import LinearOperator
-
-        return LinearOperator(self.shape, matvec=self.matvec, rmatvec=self.rmatvec, dtype=np.float64)
-
 
 class _Transposed:
     """H^T of a ContactJacobianOperator: ``H.T @ r``."""
