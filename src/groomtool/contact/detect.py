@@ -389,20 +389,6 @@ def _grow(arr, n):
 
 
 @nb.njit(cache=True)
-def _push(out_ij, out_std, n, i, j, s, t, d):
-    """Store pair n (i, j; s, t, d), growing the arrays when full."""
-    if n == out_ij.shape[0]:
-        out_ij = _grow(out_ij, n + 1)
-        out_std = _grow(out_std, n + 1)
-    out_ij[n, 0] = i
-    out_ij[n, 1] = j
-    out_std[n, 0] = s
-    out_std[n, 1] = t
-    out_std[n, 2] = d
-    return out_ij, out_std
-
-
-@nb.njit(cache=True)
 def _self_params(points, arc, u, w, s, t, min_arc):
     """Closest points of two segments of one strand (u before w) under the constraint
     s_b - s_a >= min_arc on their arc lengths; returns (s, t, feasible).
@@ -521,7 +507,7 @@ def _pair_test(i, j, points, arc, seg_v0, seg_strand, two_rc, min_self_arc):
     return (2 if d < two_rc else 1), s, t, d
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, inline="always")
 def _capsules_apart(capsule, a, b, limit):
     """Whether the chords of capsule rows a and b are at least limit + both deviations apart (tested
     on the chords' lines first, then on the chords)."""
@@ -551,53 +537,159 @@ def _capsules_apart(capsule, a, b, limit):
 
 
 @nb.njit(cache=True)
+def _pair_test_other(p0x, p0y, p0z, p1x, p1y, p1z, q0x, q0y, q0z, q1x, q1y, q1z, two_rc, reject):
+    """:func:`_pair_test` for segments [p0, p1] and [q0, q1] of two different strands, on their end
+    points (scalars: the caller's loop does no array reference counting), with one more early out
+    first: the separating axis through the midpoints.  The segments are at least
+    |m| - (|d_p . m| + |d_q . m|) / (2 |m|) apart (m the midpoints' difference, d the directions);
+    a pair whose separation is at least ``reject`` (2 r_c plus a margin far above rounding) cannot be
+    closer than 2 r_c.  The same arithmetic as :func:`_pair_test` otherwise: the same (s, t, d)."""
+    dxi = p1x - p0x
+    dyi = p1y - p0y
+    dzi = p1z - p0z
+    dxj = q1x - q0x
+    dyj = q1y - q0y
+    dzj = q1z - q0z
+    mx = 0.5 * (p0x + p1x) - 0.5 * (q0x + q1x)
+    my = 0.5 * (p0y + p1y) - 0.5 * (q0y + q1y)
+    mz = 0.5 * (p0z + p1z) - 0.5 * (q0z + q1z)
+    mm = mx * mx + my * my + mz * mz
+    half = 0.5 * (abs(dxi * mx + dyi * my + dzi * mz) + abs(dxj * mx + dyj * my + dzj * mz))
+    if mm - half >= reject * np.sqrt(mm):
+        return 0, 0.0, 0.0, 0.0
+    len2_i = 0.0 + dxi * dxi + dyi * dyi + dzi * dzi
+    len2_j = 0.0 + dxj * dxj + dyj * dyj + dzj * dzj
+    # the infinite lines are no farther apart than the segments (as in _pair_test)
+    cx = dyi * dzj - dzi * dyj
+    cy = dzi * dxj - dxi * dzj
+    cz = dxi * dyj - dyi * dxj
+    cc = cx * cx + cy * cy + cz * cz
+    if cc > 1e-8 * len2_i * len2_j:
+        r = mx * cx + my * cy + mz * cz
+        if r * r >= two_rc * two_rc * cc:
+            return 0, 0.0, 0.0, 0.0
+    s, t = _segment_params(p0x, p0y, p0z, p1x, p1y, p1z, q0x, q0y, q0z, q1x, q1y, q1z)
+    ax = p0x + s * (p1x - p0x) - (q0x + t * (q1x - q0x))
+    ay = p0y + s * (p1y - p0y) - (q0y + t * (q1y - q0y))
+    az = p0z + s * (p1z - p0z) - (q0z + t * (q1z - q0z))
+    d = np.sqrt(0.0 + ax * ax + ay * ay + az * az)
+    return (2 if d < two_rc else 1), s, t, d
+
+
+@nb.njit(cache=True)
+def _segment_boxes(points, seg_v0, seg_radius):
+    """(n_seg, 6) box of every segment inflated by its radius (``_segment_box``'s values)."""
+    n = seg_v0.shape[0]
+    sb = np.empty((n, 6))
+    for i in range(n):
+        v = seg_v0[i]
+        r = seg_radius[i]
+        for k in range(3):
+            sb[i, k] = min(points[v, k], points[v + 1, k]) - r
+            sb[i, 3 + k] = max(points[v, k], points[v + 1, k]) + r
+    return sb
+
+
+@nb.njit(cache=True, inline="always")
+def _rows_overlap(a, r, b, q):
+    """:func:`_boxes_overlap`, inlined."""
+    return not (b[q, 0] > a[r, 3] or a[r, 0] > b[q, 3] or b[q, 1] > a[r, 4] or a[r, 1] > b[q, 4]
+                or b[q, 2] > a[r, 5] or a[r, 2] > b[q, 5])
+
+
+@nb.njit(cache=True)
+def _pair_order(out_i, out_j, n_out, n_seg):
+    """The order sorting distinct pairs (out_i, out_j)[:n_out] by (i, j): counting sort by i, then an
+    insertion sort by j inside each row (rows are short)."""
+    start = np.zeros(n_seg + 1, np.int64)
+    for k in range(n_out):
+        start[out_i[k] + 1] += 1
+    for c in range(n_seg):
+        start[c + 1] += start[c]
+    fill = start[:-1].copy()
+    order = np.empty(n_out, np.int64)
+    for k in range(n_out):
+        order[fill[out_i[k]]] = k
+        fill[out_i[k]] += 1
+    for c in range(n_seg):
+        for x in range(start[c] + 1, start[c + 1]):
+            o = order[x]
+            key = out_j[o]
+            y = x - 1
+            while y >= start[c] and out_j[order[y]] > key:
+                order[y + 1] = order[y]
+                y -= 1
+            order[y + 1] = o
+    return order
+
+
+@nb.njit(cache=True)
 def _close_pairs_kernel(keys, ids, first, box, capsule, origin, h, nx, ny, points, arc, seg_v0, seg_strand,
-                        seg_radius, min_self_arc, tol):
+                        seg_radius, min_self_arc, tol, capacity):
     """Exact close segment pairs, from the group cell entries sorted by (cell key, box lower x).
 
     Segment pairs inside each group are tested directly.  Pairs of groups come from a sweep along
-    x inside each cell (boxes and capsules gathered in entry order); a group pair belongs to the
-    single cell holding the lower corner of the two boxes' intersection.  Segments i and j are close
+    x inside each cell (boxes, capsules, strands and arc spans gathered in entry order); a group pair
+    belongs to the single cell holding the lower corner of the two boxes' intersection (the cell of
+    max(a, b) is the larger of the cells of a and b: floor is monotone).  Segments i and j are close
     when their axes are less than seg_radius[i] + seg_radius[j] apart (2 r_c for one radius; one
-    radius per strand, so a group has its strand's).  Group pairs whose
-    capsules are at least r_A + r_B + tol apart are skipped; two single segments go straight to
-    :func:`_pair_test` (their boxes are the group boxes); otherwise each group's segments whose
-    boxes overlap the other group's box are paired up and the pairs whose boxes overlap get it.
+    radius per strand, so a group has its strand's).  Group pairs of one strand whose arc span is
+    below ``min_self_arc`` and group pairs whose capsules are at least r_A + r_B + tol apart are
+    skipped; otherwise each group's segments whose boxes overlap the other group's box are paired up
+    and the pairs whose boxes overlap get :func:`_pair_test_other` (two strands) or
+    :func:`_pair_test` (one strand, unless the two segments span less than ``min_self_arc``: no two
+    of their points are that far apart along the strand).
 
-    Returns (n_group_pairs, n_candidates, ij (m, 2), std (m, 3): s, t, distance), sorted by (i, j).
+    At most ``capacity`` pairs are stored; returns (n_group_pairs, n_candidates, n_pairs, ij (m, 2),
+    std (m, 3): s, t, distance) sorted by (i, j), or, when n_pairs > capacity, empty arrays (call
+    again with capacity n_pairs).
     """
     n_groups = first.shape[0] - 1
+    n_seg = seg_v0.shape[0]
+    self_skip = min_self_arc * (1.0 - 1e-9)  # spans below this have no two points min_self_arc apart
+    sb = _segment_boxes(points, seg_v0, seg_radius)
+    out_i = np.empty(capacity, np.int64)
+    out_j = np.empty(capacity, np.int64)
+    out_s = np.empty(capacity)
+    out_t = np.empty(capacity)
+    out_d = np.empty(capacity)
+    n_out = 0
+    n_cand = 0
     size = 1
     for g in range(n_groups):
         size = max(size, first[g + 1] - first[g])
     seg_a = np.empty(size, np.int64)
     seg_b = np.empty(size, np.int64)
-    box_a = np.empty((size, 6))
-    box_b = np.empty((size, 6))
-    out_ij = np.empty((1024, 2), np.int64)
-    out_std = np.empty((1024, 3))
-    n_out = 0
-    n_cand = 0
     for g in range(n_groups):
-        m = first[g + 1] - first[g]
-        for a in range(m):
-            _segment_box(points, seg_v0[first[g] + a], seg_radius[first[g] + a], box_a, a)
-        for a in range(m):
-            for b in range(a + 1, m):
-                if _boxes_overlap(box_a, a, box_a, b):
-                    stage, s, t, d = _pair_test(first[g] + a, first[g] + b, points, arc, seg_v0, seg_strand,
-                                                seg_radius[first[g] + a] + seg_radius[first[g] + b], min_self_arc)
-                    n_cand += stage > 0
-                    if stage == 2:
-                        out_ij, out_std = _push(out_ij, out_std, n_out, first[g] + a, first[g] + b, s, t, d)
-                        n_out += 1
+        for a in range(first[g], first[g + 1]):
+            for b in range(a + 1, first[g + 1]):
+                if not _rows_overlap(sb, a, sb, b) or arc[seg_v0[b] + 1] - arc[seg_v0[a]] < self_skip:
+                    continue
+                stage, s, t, d = _pair_test(a, b, points, arc, seg_v0, seg_strand, seg_radius[a] + seg_radius[b],
+                                            min_self_arc)
+                n_cand += stage > 0
+                if stage == 2:
+                    if n_out < capacity:
+                        out_i[n_out], out_j[n_out], out_s[n_out], out_t[n_out], out_d[n_out] = a, b, s, t, d
+                    n_out += 1
 
     n = keys.shape[0]
     eb = np.empty((n, 6))
     ec = np.empty((n, 7))
+    ecell = np.empty((n, 3), np.int64)  # cell of the box's lower corner
+    estrand = np.empty(n, np.int64)
+    earc = np.empty((n, 2))  # arc length of the group's first and last vertex
     for x in range(n):
-        eb[x] = box[ids[x]]
-        ec[x] = capsule[ids[x]]
+        g = ids[x]
+        for k in range(6):
+            eb[x, k] = box[g, k]
+        for k in range(7):
+            ec[x, k] = capsule[g, k]
+        for k in range(3):
+            ecell[x, k] = np.int64(np.floor((box[g, k] - origin[k]) / h))
+        estrand[x] = seg_strand[first[g]]
+        earc[x, 0] = arc[seg_v0[first[g]]]
+        earc[x, 1] = arc[seg_v0[first[g + 1] - 1] + 1]
     n_group_pairs = 0
     start = 0
     while start < n:
@@ -611,6 +703,7 @@ def _close_pairs_kernel(keys, ids, first, box, capsule, origin, h, nx, ny, point
         cx = rem - cy * nx
         for x in range(start, end):
             ax1, ay0, ay1, az0, az1 = eb[x, 3], eb[x, 1], eb[x, 4], eb[x, 2], eb[x, 5]
+            xcy, xcz = ecell[x, 1], ecell[x, 2]
             for y in range(x + 1, end):
                 if eb[y, 0] > ax1:
                     break  # sorted by lower x: no later box overlaps along x
@@ -618,56 +711,61 @@ def _close_pairs_kernel(keys, ids, first, box, capsule, origin, h, nx, ny, point
                     continue
                 # the pair belongs to the cell holding the lower corner of the boxes' intersection
                 # (eb[y, 0] >= eb[x, 0] after the sort)
-                if np.int64(np.floor((eb[y, 0] - origin[0]) / h)) != cx:
-                    continue
-                if np.int64(np.floor((max(ay0, eb[y, 1]) - origin[1]) / h)) != cy:
-                    continue
-                if np.int64(np.floor((max(az0, eb[y, 2]) - origin[2]) / h)) != cz:
+                if ecell[y, 0] != cx or max(xcy, ecell[y, 1]) != cy or max(xcz, ecell[y, 2]) != cz:
                     continue
                 n_group_pairs += 1
+                if estrand[x] == estrand[y] and max(earc[x, 1], earc[y, 1]) - min(earc[x, 0], earc[y, 0]) < self_skip:
+                    continue  # one strand, no two points min_self_arc apart
                 A = ids[x]
                 B = ids[y]
                 if _capsules_apart(ec, x, y, seg_radius[first[A]] + seg_radius[first[B]] + tol):
                     continue
-                if first[A + 1] - first[A] + first[B + 1] - first[B] == 2:  # two segments: boxes overlap
-                    i = min(first[A], first[B])
-                    j = max(first[A], first[B])
-                    stage, s, t, d = _pair_test(i, j, points, arc, seg_v0, seg_strand, seg_radius[i] + seg_radius[j],
-                                                min_self_arc)
-                    n_cand += stage > 0
-                    if stage == 2:
-                        out_ij, out_std = _push(out_ij, out_std, n_out, i, j, s, t, d)
-                        n_out += 1
-                    continue
                 na = 0
                 for a in range(first[A], first[A + 1]):
-                    _segment_box(points, seg_v0[a], seg_radius[a], box_a, na)
-                    if _boxes_overlap(box_a, na, eb, y):
+                    if _rows_overlap(sb, a, eb, y):
                         seg_a[na] = a
                         na += 1
                 if na == 0:
                     continue
                 nb_ = 0
                 for b in range(first[B], first[B + 1]):
-                    _segment_box(points, seg_v0[b], seg_radius[b], box_b, nb_)
-                    if _boxes_overlap(box_b, nb_, eb, x):
+                    if _rows_overlap(sb, b, eb, x):
                         seg_b[nb_] = b
                         nb_ += 1
                 for p in range(na):
                     for q in range(nb_):
-                        if not _boxes_overlap(box_a, p, box_b, q):
+                        if not _rows_overlap(sb, seg_a[p], sb, seg_b[q]):
                             continue
                         i = min(seg_a[p], seg_b[q])
                         j = max(seg_a[p], seg_b[q])
-                        stage, s, t, d = _pair_test(i, j, points, arc, seg_v0, seg_strand,
-                                                    seg_radius[i] + seg_radius[j], min_self_arc)
+                        two_rc = seg_radius[i] + seg_radius[j]
+                        u = seg_v0[i]
+                        w = seg_v0[j]
+                        if estrand[x] == estrand[y]:
+                            if arc[w + 1] - arc[u] < self_skip:
+                                continue
+                            stage, s, t, d = _pair_test(i, j, points, arc, seg_v0, seg_strand, two_rc, min_self_arc)
+                        else:
+                            stage, s, t, d = _pair_test_other(
+                                points[u, 0], points[u, 1], points[u, 2], points[u + 1, 0], points[u + 1, 1],
+                                points[u + 1, 2], points[w, 0], points[w, 1], points[w, 2], points[w + 1, 0],
+                                points[w + 1, 1], points[w + 1, 2], two_rc, two_rc + tol)
                         n_cand += stage > 0
                         if stage == 2:
-                            out_ij, out_std = _push(out_ij, out_std, n_out, i, j, s, t, d)
+                            if n_out < capacity:
+                                out_i[n_out], out_j[n_out], out_s[n_out], out_t[n_out], out_d[n_out] = i, j, s, t, d
                             n_out += 1
         start = end
-    order = np.argsort(out_ij[:n_out, 0] * seg_v0.shape[0] + out_ij[:n_out, 1])
-    return n_group_pairs, n_cand, out_ij[order], out_std[order]
+    if n_out > capacity:
+        return n_group_pairs, n_cand, n_out, np.empty((0, 2), np.int64), np.empty((0, 3))
+    order = _pair_order(out_i, out_j, n_out, n_seg)
+    ij = np.empty((n_out, 2), np.int64)
+    std = np.empty((n_out, 3))
+    for k in range(n_out):
+        o = order[k]
+        ij[k, 0], ij[k, 1] = out_i[o], out_j[o]
+        std[k, 0], std[k, 1], std[k, 2] = out_s[o], out_t[o], out_d[o]
+    return n_group_pairs, n_cand, n_out, ij, std
 
 
 @dataclass
@@ -694,6 +792,9 @@ def strand_radii(radius, n_strands: int) -> np.ndarray:
     if not np.all(r > 0):
         raise ValueError(f"contact radius must be positive, got {float(np.min(r)) if len(r) else radius}")
     return np.ascontiguousarray(r)
+
+
+_PAIRS_PER_SEGMENT = [1.0]  # close pairs per segment of the last call (+25 %): the next call's capacity
 
 
 def close_segment_pairs(points, offsets, arc, radius, *, min_self_arc: float | None = None,
@@ -727,9 +828,15 @@ def close_segment_pairs(points, offsets, arc, radius, *, min_self_arc: float | N
         order = np.argsort(keys, kind="stable")
     # distances are compared with a margin of rounding when groups are skipped by their capsules
     tol = 1e-9 * (2.0 * r_max + float(np.max(np.abs(points))))
-    n_group_pairs, n_cand, ij, std = _close_pairs_kernel(
-        keys[order], ids[order], first, box, capsule, origin, h, dims[0], dims[1], points, arc, seg_v0,
-        seg_strand, seg_radius, float(min_self_arc), tol)
+    args = (keys[order], ids[order], first, box, capsule, origin, h, dims[0], dims[1], points, arc, seg_v0,
+            seg_strand, seg_radius, float(min_self_arc), tol)
+    # the kernel stores at most ``capacity`` pairs (no growing arrays in its loop); sized from the last
+    # call's pairs per segment, and run again with the exact count when that was too few
+    capacity = int(_PAIRS_PER_SEGMENT[0] * len(seg_v0)) + 4096
+    n_group_pairs, n_cand, n_pairs, ij, std = _close_pairs_kernel(*args, capacity)
+    if n_pairs > capacity:
+        n_group_pairs, n_cand, n_pairs, ij, std = _close_pairs_kernel(*args, n_pairs)
+    _PAIRS_PER_SEGMENT[0] = 1.25 * n_pairs / len(seg_v0)
     return SegmentPairs(ij[:, 0].copy(), ij[:, 1].copy(), std[:, 0].copy(), std[:, 1].copy(), std[:, 2].copy(),
                         int(n_cand), int(n_group_pairs))
 
@@ -738,10 +845,15 @@ def close_segment_pairs(points, offsets, arc, radius, *, min_self_arc: float | N
 @nb.njit(cache=True)
 def _local_minima_kernel(pi, pj, ps, pt, pd, seg_strand, tol):
     """Keep pairs whose closest point is a local minimum of the polyline/polyline distance (pairs
-    sorted by (i, j), as :func:`close_segment_pairs` gives them)."""
+    sorted by (i, j), as :func:`close_segment_pairs` gives them).  A neighbouring pair (a, b) is
+    looked up in row a (the pairs whose first segment is a, sorted by b; rows are short)."""
     m = pi.shape[0]
     n_seg = seg_strand.shape[0]
-    keys = pi * n_seg + pj
+    row = np.zeros(n_seg + 1, np.int64)
+    for k in range(m):
+        row[pi[k] + 1] += 1
+    for c in range(n_seg):
+        row[c + 1] += row[c]
     keep = np.ones(m, np.bool_)
     ni = np.empty(2, np.int64)
     nj = np.empty(2, np.int64)
@@ -774,11 +886,17 @@ def _local_minima_kernel(pi, pj, ps, pt, pd, seg_strand, tol):
                 b = max(ni[x], nj[y])
                 if a == b:
                     continue
-                other = a * n_seg + b
-                pos = np.searchsorted(keys, other)
-                if pos < m and keys[pos] == other:
-                    d_other = pd[pos]
-                    if d_other < pd[k] - tol or (d_other <= pd[k] + tol and other < keys[k]):
+                lo, hi = row[a], row[a + 1]  # binary search for b in row a
+                while lo < hi:
+                    mid = (lo + hi) >> 1
+                    if pj[mid] < b:
+                        lo = mid + 1
+                    else:
+                        hi = mid
+                if lo < row[a + 1] and pj[lo] == b:
+                    d_other = pd[lo]
+                    # (a, b) < (i, j) in the pairs' order
+                    if d_other < pd[k] - tol or (d_other <= pd[k] + tol and (a < i or (a == i and b < j))):
                         keep[k] = False
     return keep
 
