@@ -254,7 +254,7 @@ def test_without_contacts_the_held_criterion_is_the_isolated_one():
     H = contact_jacobian(helix, c)
     held = held_stiffness_ratios(helix, MAT.stiffness_diag, MAT.linear_density, G, c, np.array([[1e-300, 0, 0]]), H,
                                  MAT.friction, isolated_ratios=iso)
-    assert held.kind[0] == 1 and held.kind[1] == 1  # went through the dense route
+    assert held.kind[0] == 1 and held.kind[1] == 1  # went through the route with contacts (here O(N), unblocked)
     np.testing.assert_allclose(held.ratio, iso, rtol=1e-9)
 
 
@@ -380,3 +380,81 @@ def test_an_inverted_groom_stays_at_round_off_in_the_simulator(draped, sphere):
         system = sim.step()
         assert system.stats["solver_converged"]
     assert np.abs(sim.tips() - tips0).max() < 1e-14
+
+
+def test_loose_stiffening_rounds_end_with_a_solve_to_the_requested_q0_tolerance(draped, sphere):
+    """With the strand-split ADMM the stiffening rounds before the last are solved to 10x the q0 tolerance; the
+    forces written come from a solve to the user's tolerance, whose q0 is within the certified bound of a tightly
+    solved reference with the same stiffness factors, and the stability verdict is on those forces."""
+    groom, _ = draped
+    tol = 1e-4
+    res = invert_groom(groom, head=sphere, params=_params(solver="admm", q0_tolerance=tol, solver_tolerance=1e-12))
+    stab = res.report["stability"]["stabilization"]
+    history = stab["history"]
+    assert stab["rounds"] >= 1 and history[0]["q0_tolerance"] == pytest.approx(10 * tol)  # looser rounds first
+    assert history[-1]["q0_tolerance"] == tol  # the last solve to the user's tolerance
+    solve = res.report["solve"]
+    assert solve["status"] == "solved" and solve["q0_error_bound"] <= tol
+    assert solve["cone_violation"] <= 1e-14 * np.abs(res.forces).max()
+    assert res.report["equilibrium"]["max_relative_residual"] < 1e-12
+    ref = invert_groom(groom, head=sphere, params=_params(stabilize="none", stiffness_factor=res.stiffness_factor))
+    ref_bound = ref.report["solve"]["q0_error_bound"]
+    assert ref_bound < 1e-7
+    true = np.linalg.norm(res.rest_curvatures - ref.rest_curvatures) / np.linalg.norm(ref.rest_curvatures)
+    assert true <= solve["q0_error_bound"] + ref_bound
+    # the verdict is on the forces written: the held ratios of those forces, all below their factors
+    c, H = res.contacts, contact_jacobian(res.helix, res.contacts)
+    held = held_stiffness_ratios(res.helix, MAT.stiffness_diag, MAT.linear_density, res.gravity, c, res.forces,
+                                 H, MAT.friction, isolated_ratios=res.stiffness_ratio)
+    np.testing.assert_allclose(held.ratio, res.held_ratio, rtol=1e-12)
+    assert stab["unstable_strands"] == 0 and np.all(held.ratio < res.stiffness_factor)
+    # an intermediate tolerance is only used by ADMM (Gauss-Seidel restarts from the forces alone) and only below
+    # the user's: a looser user tolerance than LOOSE_Q0_MAX solves every round to it
+    gs = invert_groom(groom, head=sphere, params=_params(solver="gs", q0_tolerance=tol, solver_tolerance=1e-12))
+    assert all(h["q0_tolerance"] == tol for h in gs.report["stability"]["stabilization"]["history"])
+    loose = invert_groom(groom, head=sphere, params=_params(solver="admm", q0_tolerance=0.05))
+    assert all(h["q0_tolerance"] == 0.05 for h in loose.report["stability"]["stabilization"]["history"])
+
+
+def test_stiffening_step_extrapolates_the_growth_of_a_raised_strand():
+    """A strand raised from f0 = 1 (rho0 = 2) to f = 2.2 whose rho grew to 2.42 (rho ~ f^k, k = log 1.21 / log 2.2):
+    the next factor is the fixed point f = margin rho (f / 2.2)^k, not margin * 2.42; a strand without a previous
+    raise, or whose rho fell, gets margin * rho."""
+    ratio = np.array([2.42, 3.0, 2.3])
+    factor = np.array([2.2, 1.0, 2.2])
+    previous = (np.array([2.0, 0.0, 2.5]), np.array([1.0, 1.0, 1.0]))
+    new = stiffening_step(ratio, factor, margin=1.1, cap=100.0, previous=previous)
+    k = np.log(2.42 / 2.0) / np.log(2.2)
+    f = new[0]
+    assert f == pytest.approx(1.1 * 2.42 * (f / 2.2) ** k, rel=1e-12) and f > 1.1 * 2.42
+    np.testing.assert_allclose(new[1:], [3.3, 1.1 * 2.3])
+    # the growth exponent is capped (MAX_GROWTH = 0.5): f = (margin rho)^2 / f_now at most
+    steep = stiffening_step(np.array([4.0]), np.array([2.2]), 1.1, 100.0, previous=(np.array([0.5]), np.array([1.0])))
+    assert steep[0] == pytest.approx((1.1 * 4.0) ** 2 / 2.2)
+
+
+def test_strands_no_head_contact_blocks_take_the_certified_route_with_the_dense_result(draped, monkeypatch):
+    """Loaded strands without loaded head contacts (nothing blocks them) get lambda_max of the whole
+    K^-1/2 (dF/dq + dF_c/dq) K^-1/2 from its generators in O(N) (stability._lambda_max); the same numbers as the
+    dense eigvalsh it replaced (forced here by a batch that certifies nothing), to 1e-10."""
+    import groomtool.stability as stability
+
+    _, res = draped
+    helix, c = res.helix, res.contacts
+    H = contact_jacobian(helix, c)
+    r = np.zeros_like(res.forces)  # strand/strand loads only: no strand is blocked
+    ss = np.flatnonzero(c.strand_b >= 0)
+    assert len(ss)
+    r[ss, 0] = MAT.linear_density * 9.81 * 5.0 * np.linspace(0.5, 1.5, len(ss))  # loads that matter against gravity
+    r[ss, 1] = 0.3 * MAT.friction * r[ss, 0]
+    fast = held_stiffness_ratios(helix, MAT.stiffness_diag, MAT.linear_density, G, c, r, H, MAT.friction)
+    assert np.count_nonzero(fast.kind == 1) >= 2 and np.all(fast.blocked_rows == 0)
+
+    def certifies_nothing(u, v, d, n_elements, *args):
+        args[-1][:] = False
+
+    monkeypatch.setattr(stability, "_lambda_max_batch", certifies_nothing)
+    dense = held_stiffness_ratios(helix, MAT.stiffness_diag, MAT.linear_density, G, c, r, H, MAT.friction)
+    np.testing.assert_allclose(fast.ratio, dense.ratio, rtol=1e-10)
+    iso = stiffness_ratios(helix, MAT.stiffness_diag, MAT.linear_density, G)
+    assert np.any(np.abs(fast.ratio - iso) > 1e-3 * np.abs(iso))  # the loads count

@@ -354,8 +354,17 @@ def rest_curvature_error_bound(problem: InverseProblem, cp, r, u=None, line_sear
             "q0_bound_source": source}
 
 
+def solver_method(cp, params, redundant_fraction: float = 1.0) -> str:
+    """The solver solve_inverse_problem runs on the ContactProblem ``cp`` (params.solver; ``auto``: choose_solver, then
+    on dense contacts beyond 10,000 the strand-split ADMM where it fits, solver_choice.dense_iterative_method)."""
+    method = choose_solver(params.solver, cp.n_contacts, redundant_fraction)
+    if params.solver == "auto" and method == "gs":  # dense contacts beyond clarabel's reach: the strand-split ADMM
+        method = dense_iterative_method(cp, redundant_fraction)
+    return method
+
+
 def solve_inverse_problem(problem: InverseProblem, helix: sh.SuperHelix, params, quiet: bool = True,
-                          redundant_fraction: float = 1.0, initial_forces=None, initial_state=None) -> dict:
+                          redundant_fraction: float = 1.0, initial_forces=None, initial_state=None, cp=None) -> dict:
     """Solve the scaled SOCQP with the chosen solver; forces returned in newtons (m, 3).  ``params``: the
     InversionParams (solver, solver_tolerance, max_sweeps, q0_tolerance).  The progress bar counts
     Gauss-Seidel sweeps (clarabel's polish included; ADMM iterations) and shows the residual.  ``auto``: choose_solver,
@@ -365,15 +374,15 @@ def solve_inverse_problem(problem: InverseProblem, helix: sh.SuperHelix, params,
     Gauss-Seidel starts from them (clarabel ignores them).  The strand-split ADMM returns its end state as
     ``admm_state`` (opaque; None for the other solvers); given back as ``initial_state`` on a problem with the same
     contacts (the same H: another K, as after stiffening), ADMM starts from it instead of ``initial_forces`` (its
-    multipliers carried over, rescaled for the new K: admm.ADMMState); the other solvers ignore it."""
+    multipliers carried over, rescaled for the new K: admm.ADMMState); the other solvers ignore it.  ``cp``: the
+    problem's ContactProblem when the caller built it already (problem.contact_problem(helix))."""
     from .solvers import solve_contact_problem  # the solvers (clarabel, 0.3 s): kept off the CLI's start
     from .solvers.gauss_seidel import GIVE_UP_MIN_SWEEPS, give_up_projection, projected_sweeps
 
-    cp = problem.contact_problem(helix)
+    if cp is None:
+        cp = problem.contact_problem(helix)
     m = len(problem.mu)
-    method = choose_solver(params.solver, m, redundant_fraction)
-    if params.solver == "auto" and method == "gs":  # dense contacts beyond clarabel's reach: the strand-split ADMM
-        method = dense_iterative_method(cp, redundant_fraction)
+    method = solver_method(cp, params, redundant_fraction)
     bounded = problem.gamma > 0 and problem.q0_free is not None
     gave_up = {}  # ADMM: the projection of its q0 bound that stopped it (give_up_projection on the bound's history)
     admm_state = {}  # ADMM: its end state ("state"), for a later solve's initial_state

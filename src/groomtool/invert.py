@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -19,7 +19,7 @@ from .fit.fitter import DEFAULT_TOLERANCE_M
 from .groom import Groom, GroomError
 from .inverse_problem import (MODELS, build_inverse_problem, cone_violation, equilibrium_residuals,
                               isolated_rest_curvatures, model_name, rest_curvatures_with_contacts, rod_module,
-                              solve_inverse_problem, strand_stiffness)
+                              solve_inverse_problem, solver_method, strand_stiffness)
 from .deprecation import rename_field
 from .material import Material
 from .rods import superhelix as sh
@@ -282,16 +282,27 @@ def invert_groom(groom: Groom, head=None, params: InversionParams | None = None,
             raise ValueError(f"stiffness_factor must be {helix.n_strands} positive numbers, one per strand")
         factor = given.copy()
     held, rounds, history, admm_state = None, 0, [], None
+    # stiffening rounds before the last are solved to a looser q0 tolerance (their forces only decide which strands
+    # to stiffen); the forces written always come from a solve to the user's tolerance, and the stability verdict
+    # is on those forces (docs/stability.md section 3)
+    loose = _intermediate_q0_tolerance(params) if contacts is not None else None
+    raised_ratio, raised_factor = np.zeros(helix.n_strands), factor.copy()
     while True:
         if contacts is not None:
+            round_params = params if loose is None else replace(params, q0_tolerance=loose)
             with timer.stage("solve"):
                 problem = build_inverse_problem(helix, F, H, material, gravity, params.guess, params.gamma, mu_solve,
                                                 stiffness_factor=factor)
                 # a re-solve after stiffening starts from the previous round's forces (Gauss-Seidel) or the
                 # previous round's whole state (the strand-split ADMM: its multipliers too, rescaled for the new K)
-                solve = solve_inverse_problem(problem, helix, params, quiet, redundant,
-                                              initial_forces=forces if rounds > 0 else None,
-                                              initial_state=admm_state if rounds > 0 else None)
+                cp = problem.contact_problem(helix)
+                if loose is not None and not history and solver_method(cp, params, redundant) != "admm":
+                    loose = None  # only the strand-split ADMM carries its whole state into the next round
+                    round_params = params
+                solve = solve_inverse_problem(problem, helix, round_params, quiet, redundant,
+                                              initial_forces=forces if history else None,
+                                              initial_state=admm_state if history else None, cp=cp)
+                del cp
             forces, admm_state = solve["forces"], solve.pop("admm_state", None)
             report["solve"] = {k: v for k, v in solve.items() if k != "forces"}
             report["solve"]["objective"] = problem.objective(forces.ravel())
@@ -313,14 +324,24 @@ def invert_groom(groom: Groom, head=None, params: InversionParams | None = None,
             break
         with timer.stage("stability_with_contacts"):
             held = held_stability(helix, material, gravity, contacts, forces, H, mu, ratio, quiet)
-        step = stiffening_step(held.ratio, factor, params.stability_margin, params.max_stiffness_factor)
+        step = stiffening_step(held.ratio, factor, params.stability_margin, params.max_stiffness_factor,
+                               previous=(raised_ratio, raised_factor))
         history.append({"unstable": int(np.count_nonzero(held.ratio >= factor)),
                         "max_ratio": float(held.ratio.max()) if len(held.ratio) else 0.0,
                         "solve_iterations": int(report["solve"]["iterations"]) if contacts is not None else 0})
+        if contacts is not None:
+            history[-1]["q0_tolerance"] = round_params.q0_tolerance
         if params.stabilize != "stiffness" or step is None or rounds >= MAX_ROUNDS:
+            if loose is not None and not _final_quality(report["solve"], params):
+                loose = None  # solve once more to the user's tolerance (same factors) and check those forces
+                continue
             break
         history[-1]["raised"] = int(np.count_nonzero(step > factor))
+        up = step > factor  # each raised strand's rho at the factor it had (stiffening_step extrapolates from it)
+        raised_ratio[up], raised_factor[up] = held.ratio[up], factor[up]
         factor, rounds = step, rounds + 1
+        if loose is not None and rounds >= MAX_ROUNDS - TIGHT_ROUNDS:
+            loose = None  # the last rounds to the user's tolerance: they stiffen what its forces still find unstable
     admm_state = None  # the last round's ADMM state holds its strand factors (1.25 GB on harolongo): not needed now
     if contacts is not None and report["solve"].get("warning"):
         warnings.warn(report["solve"]["warning"], FeasibleSolveWarning, stacklevel=2)
@@ -471,6 +492,39 @@ def _snap_groom_roots(groom: Groom, head, snap_roots):
     moved = Groom(groom.points + shift, groom.offsets, up=groom.up, source=groom.source,
                   metadata=dict(groom.metadata))
     return moved, gaps
+
+
+#: stiffening rounds before the last solve to this many times the user's q0 tolerance (at most LOOSE_Q0_MAX)
+LOOSE_Q0_FACTOR = 10.0
+LOOSE_Q0_MAX = 3e-2
+#: the last stiffening rounds (of MAX_ROUNDS) are solved to the user's tolerance even when the looser ones have not
+#: settled (harolongo: every round raises a few dozen strands, and the first solve to the user's tolerance finds
+#: ~60 more unstable than the looser forces did)
+TIGHT_ROUNDS = 2
+
+
+def _intermediate_q0_tolerance(params: InversionParams) -> float | None:
+    """The q0 tolerance of the stiffening rounds before the last (None: every solve to the user's): only with
+    --stabilize stiffness and a q0 tolerance, LOOSE_Q0_FACTOR times it, at most LOOSE_Q0_MAX (never below it).
+    The rounds' forces only decide which strands to stiffen; the written forces come from a solve to the user's
+    tolerance and the stability verdict is on them (invert_groom).  Measured on example_groom(1000) and harolongo
+    with all contacts: docs/stability.md section 3."""
+    if params.stabilize != "stiffness" or params.q0_tolerance is None:
+        return None
+    loose = min(LOOSE_Q0_FACTOR * params.q0_tolerance, LOOSE_Q0_MAX)
+    return loose if loose > params.q0_tolerance else None
+
+
+def _final_quality(solve: dict, params: InversionParams) -> bool:
+    """Whether a solve to a looser q0 tolerance is already what a solve to the user's would give: it stopped on the
+    residual, or with a certified bound within the user's q0 tolerance, or it did not converge at all (a solve to
+    the tighter tolerance, with the same budget, would not either)."""
+    if not solve.get("converged"):
+        return True
+    if solve.get("stopped_on", "residual") != "q0_tolerance":
+        return True
+    bound = solve.get("q0_error_bound")
+    return bound is not None and params.q0_tolerance is not None and bound <= params.q0_tolerance
 
 
 def _failure_message(solve: dict, params: InversionParams) -> str:

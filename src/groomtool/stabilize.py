@@ -26,15 +26,35 @@ DEFAULT_CAP = 100.0  # no strand is made more than 100x stiffer
 MAX_ROUNDS = 8
 
 
+#: the largest growth exponent k (rho ~ f^k) that stiffening_step extrapolates with
+MAX_GROWTH = 0.5
+
+
 def stiffening_step(ratio: np.ndarray, factor: np.ndarray, margin: float = DEFAULT_MARGIN,
-                    cap: float = DEFAULT_CAP) -> np.ndarray | None:
-    """The next stiffness factors: margin * rho (at most ``cap``, never lower than now) for the strands
-    with rho >= f (unstable); None when nothing changes (all stable, or the unstable ones at the cap)."""
+                    cap: float = DEFAULT_CAP, previous: tuple | None = None) -> np.ndarray | None:
+    """The next stiffness factors for the strands with rho >= f (unstable), never lower than now and at most
+    ``cap``; None when nothing changes (all stable, or the unstable ones at the cap).
+
+    A strand's rho is measured with the forces of the last solve, and stiffening a strand changes them: a stiffer
+    strand takes more of the load, so its rho grows (measured on example_groom(1000): 33 of the 40 strands unstable
+    after the first round had been raised in it, rho up 3-40 %).  Without ``previous`` every unstable strand gets
+    margin * rho.  With ``previous`` = (ratio0, factor0), a strand's rho0 measured at f0 < f before its last raise,
+    the growth rho ~ f^k, k = log(rho / rho0) / log(f / f0) clipped to [0, MAX_GROWTH], is extrapolated: the new f
+    solves f = margin * rho (f / f_now)^k, i.e. f = (margin * rho * f_now^-k)^(1 / (1 - k)) (margin * rho when k =
+    0), so that the strand is stable with the margin at the rho the new factor will bring, in one round instead of
+    several."""
     ratio = np.asarray(ratio, dtype=np.float64)
     factor = np.asarray(factor, dtype=np.float64)
     need = ratio >= factor
+    target = margin * ratio
+    if previous is not None:
+        ratio0, factor0 = (np.asarray(a, dtype=np.float64) for a in previous)
+        known = need & (factor0 < factor) & (ratio0 > 0) & (ratio > ratio0)
+        if np.any(known):
+            k = np.clip(np.log(ratio[known] / ratio0[known]) / np.log(factor[known] / factor0[known]), 0.0, MAX_GROWTH)
+            target[known] = (target[known] * factor[known] ** -k) ** (1.0 / (1.0 - k))
     new = factor.copy()
-    new[need] = np.clip(margin * ratio[need], factor[need], cap)
+    new[need] = np.clip(target[need], factor[need], cap)
     if np.array_equal(new, factor):
         return None
     return new
