@@ -625,7 +625,8 @@ def _pair_order(out_i, out_j, n_out, n_seg):
 
 @nb.njit(cache=True)
 def _close_pairs_kernel(keys, ids, first, box, capsule, origin, h, nx, ny, points, arc, seg_v0, seg_strand,
-                        seg_radius, min_self_arc, tol, capacity):
+                        seg_radius, min_self_arc, tol, out_i, out_j, out_s, out_t, out_d, n_out, g_start, e_start,
+                        n_group_pairs, n_cand):
     """Exact close segment pairs, from the group cell entries sorted by (cell key, box lower x).
 
     Segment pairs inside each group are tested directly.  Pairs of groups come from a sweep along
@@ -640,27 +641,26 @@ def _close_pairs_kernel(keys, ids, first, box, capsule, origin, h, nx, ny, point
     :func:`_pair_test` (one strand, unless the two segments span less than ``min_self_arc``: no two
     of their points are that far apart along the strand).
 
-    At most ``capacity`` pairs are stored; returns (n_group_pairs, n_candidates, n_pairs, ij (m, 2),
-    std (m, 3): s, t, distance) sorted by (i, j), or, when n_pairs > capacity, empty arrays (call
-    again with capacity n_pairs).
+    The pairs go to ``out_i, out_j, out_s, out_t, out_d`` from row ``n_out`` on, in the order found
+    (:func:`_sorted_pairs` sorts them), starting with group ``g_start`` (the pairs inside groups)
+    and, once all groups are done, with the cell whose entries start at ``e_start``.  When the
+    arrays are full the kernel stops before the group or cell that does not fit, forgetting that
+    group's or cell's pairs, and returns where to resume: (n_out, g_next, e_next, n_group_pairs,
+    n_candidates), finished when g_next = n_groups and e_next = len(keys).  No array grows in its
+    loops (arrays carried through a loop cost reference counting in every iteration).
     """
     n_groups = first.shape[0] - 1
     n_seg = seg_v0.shape[0]
     self_skip = min_self_arc * (1.0 - 1e-9)  # spans below this have no two points min_self_arc apart
     sb = _segment_boxes(points, seg_v0, seg_radius)
-    out_i = np.empty(capacity, np.int64)
-    out_j = np.empty(capacity, np.int64)
-    out_s = np.empty(capacity)
-    out_t = np.empty(capacity)
-    out_d = np.empty(capacity)
-    n_out = 0
-    n_cand = 0
+    capacity = out_i.shape[0]
     size = 1
     for g in range(n_groups):
         size = max(size, first[g + 1] - first[g])
     seg_a = np.empty(size, np.int64)
     seg_b = np.empty(size, np.int64)
-    for g in range(n_groups):
+    for g in range(g_start, n_groups):
+        n_out0, n_cand0 = n_out, n_cand
         for a in range(first[g], first[g + 1]):
             for b in range(a + 1, first[g + 1]):
                 if not _rows_overlap(sb, a, sb, b) or arc[seg_v0[b] + 1] - arc[seg_v0[a]] < self_skip:
@@ -669,8 +669,9 @@ def _close_pairs_kernel(keys, ids, first, box, capsule, origin, h, nx, ny, point
                                             min_self_arc)
                 n_cand += stage > 0
                 if stage == 2:
-                    if n_out < capacity:
-                        out_i[n_out], out_j[n_out], out_s[n_out], out_t[n_out], out_d[n_out] = a, b, s, t, d
+                    if n_out == capacity:
+                        return n_out0, g, 0, n_group_pairs, n_cand0
+                    out_i[n_out], out_j[n_out], out_s[n_out], out_t[n_out], out_d[n_out] = a, b, s, t, d
                     n_out += 1
 
     n = keys.shape[0]
@@ -690,9 +691,9 @@ def _close_pairs_kernel(keys, ids, first, box, capsule, origin, h, nx, ny, point
         estrand[x] = seg_strand[first[g]]
         earc[x, 0] = arc[seg_v0[first[g]]]
         earc[x, 1] = arc[seg_v0[first[g + 1] - 1] + 1]
-    n_group_pairs = 0
-    start = 0
+    start = e_start
     while start < n:
+        n_out0, n_cand0, n_group_pairs0 = n_out, n_cand, n_group_pairs
         key = keys[start]
         end = start + 1
         while end < n and keys[end] == key:
@@ -752,20 +753,24 @@ def _close_pairs_kernel(keys, ids, first, box, capsule, origin, h, nx, ny, point
                                 points[w + 1, 1], points[w + 1, 2], two_rc, two_rc + tol)
                         n_cand += stage > 0
                         if stage == 2:
-                            if n_out < capacity:
-                                out_i[n_out], out_j[n_out], out_s[n_out], out_t[n_out], out_d[n_out] = i, j, s, t, d
+                            if n_out == capacity:
+                                return n_out0, n_groups, start, n_group_pairs0, n_cand0
+                            out_i[n_out], out_j[n_out], out_s[n_out], out_t[n_out], out_d[n_out] = i, j, s, t, d
                             n_out += 1
         start = end
-    if n_out > capacity:
-        return n_group_pairs, n_cand, n_out, np.empty((0, 2), np.int64), np.empty((0, 3))
+    return n_out, n_groups, n, n_group_pairs, n_cand
+
+
+@nb.njit(cache=True)
+def _sorted_pairs(out_i, out_j, out_s, out_t, out_d, n_out, n_seg):
+    """The first n_out pairs sorted by (i, j): i, j, s, t, distance (n_out,) each."""
     order = _pair_order(out_i, out_j, n_out, n_seg)
-    ij = np.empty((n_out, 2), np.int64)
-    std = np.empty((n_out, 3))
+    i, j = np.empty(n_out, np.int64), np.empty(n_out, np.int64)
+    s, t, d = np.empty(n_out), np.empty(n_out), np.empty(n_out)
     for k in range(n_out):
         o = order[k]
-        ij[k, 0], ij[k, 1] = out_i[o], out_j[o]
-        std[k, 0], std[k, 1], std[k, 2] = out_s[o], out_t[o], out_d[o]
-    return n_group_pairs, n_cand, n_out, ij, std
+        i[k], j[k], s[k], t[k], d[k] = out_i[o], out_j[o], out_s[o], out_t[o], out_d[o]
+    return i, j, s, t, d
 
 
 @dataclass
@@ -795,6 +800,7 @@ def strand_radii(radius, n_strands: int) -> np.ndarray:
 
 
 _PAIRS_PER_SEGMENT = [1.0]  # close pairs per segment of the last call (+25 %): the next call's capacity
+_MIN_CAPACITY = 4096  # (the tests make it tiny to exercise the resumption)
 
 
 def close_segment_pairs(points, offsets, arc, radius, *, min_self_arc: float | None = None,
@@ -830,15 +836,20 @@ def close_segment_pairs(points, offsets, arc, radius, *, min_self_arc: float | N
     tol = 1e-9 * (2.0 * r_max + float(np.max(np.abs(points))))
     args = (keys[order], ids[order], first, box, capsule, origin, h, dims[0], dims[1], points, arc, seg_v0,
             seg_strand, seg_radius, float(min_self_arc), tol)
-    # the kernel stores at most ``capacity`` pairs (no growing arrays in its loop); sized from the last
-    # call's pairs per segment, and run again with the exact count when that was too few
-    capacity = int(_PAIRS_PER_SEGMENT[0] * len(seg_v0)) + 4096
-    n_group_pairs, n_cand, n_pairs, ij, std = _close_pairs_kernel(*args, capacity)
-    if n_pairs > capacity:
-        n_group_pairs, n_cand, n_pairs, ij, std = _close_pairs_kernel(*args, n_pairs)
-    _PAIRS_PER_SEGMENT[0] = 1.25 * n_pairs / len(seg_v0)
-    return SegmentPairs(ij[:, 0].copy(), ij[:, 1].copy(), std[:, 0].copy(), std[:, 1].copy(), std[:, 2].copy(),
-                        int(n_cand), int(n_group_pairs))
+    # the kernel fills arrays of a given size and says where to resume when they are full: sized from
+    # the last call's pairs per segment, doubled as needed (the result does not depend on it)
+    capacity = int(_PAIRS_PER_SEGMENT[0] * len(seg_v0)) + _MIN_CAPACITY
+    out = [np.empty(capacity, np.int64), np.empty(capacity, np.int64), np.empty(capacity), np.empty(capacity),
+           np.empty(capacity)]
+    n_out = g_next = e_next = n_group_pairs = n_cand = 0
+    while True:
+        n_out, g_next, e_next, n_group_pairs, n_cand = _close_pairs_kernel(
+            *args, *out, n_out, g_next, e_next, n_group_pairs, n_cand)
+        if g_next >= len(first) - 1 and e_next >= len(keys):
+            break
+        out = [np.concatenate([x[:n_out], np.empty(len(x), x.dtype)]) for x in out]
+    _PAIRS_PER_SEGMENT[0] = 1.25 * n_out / len(seg_v0)
+    return SegmentPairs(*_sorted_pairs(*out, n_out, len(seg_v0)), int(n_cand), int(n_group_pairs))
 
 
 # ------------------------------------------------------------------------------ deduplication
