@@ -254,10 +254,10 @@ def test_a_strand_that_moved_alone_is_assembled_alone_and_the_step_is_the_assemb
     fresh_sim.state = State(0.0, moved, rates)
     fresh = fresh_sim.assemble()
     np.testing.assert_allclose(partial.v_free, fresh.v_free, rtol=0, atol=1e-11 * np.abs(fresh.v_free).max())
-    idx = match_contacts(fresh.contacts, partial.contacts, 1e-12)
+    idx = match_contacts(fresh.contacts, partial.contacts, 1e-12)  # partial contact i is fresh contact idx[i]
     assert np.all(idx >= 0) and len(idx) == len(fresh.contacts.strand_a) == len(partial.contacts.strand_a)
-    b_partial = partial.problem.b.reshape(-1, 3)[idx] * partial.r_scale
-    b_fresh = fresh.problem.b.reshape(-1, 3) * fresh.r_scale
+    b_partial = partial.problem.b.reshape(-1, 3) * partial.r_scale
+    b_fresh = fresh.problem.b.reshape(-1, 3)[idx] * fresh.r_scale
     np.testing.assert_allclose(b_partial, b_fresh, rtol=0, atol=1e-10 * np.abs(b_fresh).max())
     # W: the unmoved strands' D blocks taken from the kept problem, the moved one's new: those of a full assembly
     assert len(partial.problem.D_blocks) == len(fresh.problem.D_blocks)

@@ -52,6 +52,7 @@ from dataclasses import dataclass, field, replace
 from typing import Callable
 
 import numpy as np
+import scipy.sparse as sp
 from threadpoolctl import threadpool_limits
 
 from .deprecation import rename_field
@@ -60,7 +61,7 @@ from .rods import clothoid as cl
 from .rods import dynamics as dyn
 from .rods import superhelix as sh
 from .simulate_contacts import (ContactTracker, contact_gaps, match_contacts,  # noqa: F401 (re-exported)
-                                normal_velocity_targets)
+                                normal_velocity_targets, strand_part, touching)
 from .simulate_linalg import (StepCorrections, StrandFactors, factor_step_matrix, moved_dofs, step_difference_apply,
                               strand_chunks)
 from .simulate_motion import HeadMotion
@@ -131,6 +132,12 @@ class SimulationParams:
     # that assembly's step matrices, contact set and H; F(q), K (q - q0), the right-hand side and the contact
     # solve are new every step (AtRestSystem; 0: assemble every step)
     reuse_rotation: float = 1e-7
+    # a strand at rest keeps its contacts, their H rows and w while no element turned by more than this since they were
+    # made (rad; None: reuse_rotation / 10); then a partial step makes them anew (Simulator._partial_contacts).  Kept
+    # as long as the dynamics (reuse_rotation), the contacts of a creeping inverted groom let it creep faster: on
+    # harolongo every step from the 39th reassembled strands, 190 a step by the 120th (15,624 strand assemblies
+    # instead of 35); made anew at a tenth of it, its contacts hold it (no strand reassembled in 100 steps)
+    contact_rotation: float | None = None
     # Super Space Clothoids: compute their velocity terms A (dyn.clothoid_velocity_terms: exact, by complex steps,
     # 80-170 ms per step on 5-strand USC styles, 2-4x M and dF/dq); off: dropped (exact at rest)
     clothoid_velocity_terms: bool = False
@@ -145,6 +152,8 @@ class SimulationParams:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
         if not (self.reuse_rotation >= 0):
             raise ValueError(f"reuse_rotation must be >= 0, got {self.reuse_rotation}")
+        if self.contact_rotation is not None and not (self.contact_rotation >= 0):
+            raise ValueError(f"contact_rotation must be >= 0, got {self.contact_rotation}")
         if self.detection_skin is not None and not (self.detection_skin >= 0):
             raise ValueError(f"detection_skin must be >= 0, got {self.detection_skin}")
         if not (self.rotational_inertia_scale > 0):
@@ -276,9 +285,11 @@ class Simulator:
         self._factors = None  # the step's Cholesky factors (StrandFactors), overwritten by the next step
         self._at_rest: AtRestSystem | None = None  # the last assembly, while the groom stays at rest
         self._kept = None  # (A, dF/dq generators) of the assembly under way, for _at_rest (_keeps_assembly)
+        self._contacts_at = None  # per strand the curvatures its contacts were made at (_stale_contacts)
         self.reused_steps = 0  # steps that reused the last assembly (_at_rest_system)
         self.partial_steps = 0  # steps at rest that assembled only the strands that moved (_partial_assembly)
         self.partial_strands = 0  # strands assembled by those steps, summed
+        self.refreshed_strands = 0  # strands whose contacts partial steps made anew, summed (_partial_contacts)
         self._chunks = strand_chunks(self._dof_blocks)
         self._geometry = None  # (state, helix, kinematics) of the last state asked for (geometry())
         self._contacts_on = self.params.contacts == "all" or (self.params.contacts == "head" and head is not None)
@@ -343,14 +354,17 @@ class Simulator:
         pose = self.motion.pose(st.time)
         if self._at_rest is not None:
             moved = self._moved_strands(pose)
-            if moved is not None and not moved.any():
-                return self._at_rest_system(st, pose, t0)
-            if moved is not None and not moved.all() and self._corrections is not None:
-                return self._partial_assembly(st, pose, t0, moved)
+            if moved is not None:
+                refresh = moved | self._stale_contacts()
+                if not refresh.any():
+                    return self._at_rest_system(st, pose, t0)
+                if not moved.all() and self._corrections is not None:
+                    return self._partial_assembly(st, pose, t0, moved, refresh)
             self._at_rest = None
         dynamics = self._clothoid_dynamics if self.clothoid else self._helix_dynamics
         helix, kin, v_free, t0 = dynamics(st, pose, t0)
         system = self._contact_system(StepSystem(helix=helix, kin=kin, factors=self._factors, v_free=v_free), pose, t0)
+        self._contacts_at = st.curvatures.copy() if self._contacts_on else None
         if self._kept is not None:
             kept_all = self._corrections is not None or np.all(self._factors.correction_kept)
             if kept_all:  # without its geometry and free rates (a step at rest has its own; ~0.45 GB on harolongo)
@@ -386,17 +400,31 @@ class Simulator:
         turned = np.einsum("sn,sn->s", self.lengths, np.sqrt(np.einsum("snk,snk->sn", dq, dq)))
         return turned >= self.params.reuse_rotation
 
-    def _partial_assembly(self, st: State, pose, t0: float, moved: np.ndarray) -> StepSystem:
+    def _stale_contacts(self) -> np.ndarray:
+        """Per strand, whether an element has turned by contact_rotation or more since the strand's contacts were last
+        made (contacts, H rows, w: _contact_system, _partial_contacts)."""
+        S = self.lengths.shape[0]
+        if self._contacts_at is None or self._at_rest.system.problem is None:
+            return np.zeros(S, dtype=bool)
+        tau = self.params.contact_rotation
+        tau = 0.1 * self.params.reuse_rotation if tau is None else tau
+        dq = self.state.curvatures - self._contacts_at
+        turned = np.einsum("sn,sn->s", self.lengths, np.sqrt(np.einsum("snk,snk->sn", dq, dq)))
+        return turned >= tau
+
+    def _partial_assembly(self, st: State, pose, t0: float, moved: np.ndarray, refresh=None) -> StepSystem:
         """A groom at rest but for the strands ``moved`` (_moved_strands): those get a new M, A, dF/dq generators and
         factorised Mhat (their kept A, generators and curvatures are replaced), the others keep theirs; the free
         rates of all from the kept parts as at rest (_free_rates_kept: exact for a strand whose Mhat, A and dF/dq
-        are of one configuration, new or kept), then the contacts, H and the contact problem are made anew and
-        kept.  A full assembly would redo M and Mhat of every strand (harolongo: ~7 s of a step) for one that
+        are of one configuration, new or kept), then the contacts of the strands ``refresh`` (``moved`` and those whose
+        contacts went stale, _stale_contacts; ``moved`` may be empty) are made anew, the others' kept
+        (_partial_contacts).  A full assembly would redo M and Mhat of every strand (harolongo: ~7 s of a step) for one that
         crept by 1e-7 rad."""
         p = self.params
         kept = self._at_rest
         helix, kin = self.geometry()
-        if p.implicit_gravity:  # the moved strands' generators, into the kept ones (the others keep theirs)
+        refresh = moved if refresh is None else refresh
+        if p.implicit_gravity and moved.any():  # the moved strands' generators, into the kept ones (the others keep theirs)
             moved_ids = np.flatnonzero(moved)
             sub = helix.subset(moved_ids)
             n = sub.max_elements
@@ -428,8 +456,8 @@ class Simulator:
         self.partial_steps += 1
         self.partial_strands += int(np.count_nonzero(moved))
         t0 = self._time("factor", t0)
-        system = self._contact_system(StepSystem(helix=helix, kin=kin, factors=self._factors, v_free=v_free), pose, t0,
-                                      refactored=moved)
+        system = self._partial_contacts(StepSystem(helix=helix, kin=kin, factors=self._factors, v_free=v_free), pose, t0,
+                                        moved, refresh)
         self._at_rest = AtRestSystem(kept.curvatures, kept.velocity_terms, kept.gravity_parts,
                                      replace(system, helix=None, kin=None, v_free=None, stats={}))
         return system
@@ -603,7 +631,74 @@ class Simulator:
         self._time("contact_setup", t0)
         return system
 
-    def _build_problem(self, system: StepSystem, w: np.ndarray, refactored: np.ndarray | None = None) -> None:
+    def _partial_contacts(self, system: StepSystem, pose, t0: float, moved: np.ndarray, refresh=None) -> StepSystem:
+        """The contacts, H and contact problem of a partial step (_partial_assembly).  ``refresh``: the strands whose
+        contacts are made anew (default ``moved``): those ``moved`` (refactored) and those whose contacts turned by
+        params.contact_rotation since they were made (_stale_contacts).  The contacts of the other strands (neither
+        side in ``refresh``) keep their kept rows: the contact record, its H row and w, its r0 from the last step, and
+        its part of W (diagonal block, the blocks W_ij between two such contacts, the packed H D panels:
+        ContactProblem.carry_cache) where its strands keep their D blocks.  Only the contacts that touch a strand of
+        ``refresh`` are found again (ContactTracker.contacts_of: the kept strand/strand candidates with a side there,
+        revisited; those strands' head contacts; their persistent ones), their H rows computed on the strands involved
+        alone (contact_jacobian_part), their w from their gaps; the D blocks of the moved strands and of those whose
+        contacts now reach other dofs are new (_build_problem), every block of W with a new contact is computed.
+        b = H v_free + w for all.
+
+        For the other strands this is the approximation of a step at rest (_at_rest_system): their contacts, H rows and
+        w are those of a configuration within contact_rotation of the current one.  With those strands exactly where
+        they were the contacts, H, w, b and W are a full assembly's (_contact_system) to round-off, the kept contacts
+        first (tests/test_simulate_partial.py).  Where the kept strand/strand candidates cannot serve (ContactTracker.
+        contacts_of), all contacts are made anew (_full_contacts)."""
+        kept = self._at_rest.system
+        refresh = moved if refresh is None else refresh
+        if not self._contacts_on or kept.problem is None or kept.H is None or self.clothoid or pose.moving:
+            return self._full_contacts(system, pose, t0, moved)
+        from .contact import Contacts
+        from .contact.jacobian import contact_jacobian_part
+
+        st = self.state
+        helix, kin = system.helix, system.kin
+        margins = self.tracker.margins(dyn.strand_node_speeds(helix, st.rates, kin))
+        moved_ids = np.flatnonzero(refresh)
+        slack = 2.0 * self.params.reuse_rotation * float(np.max(helix.strand_lengths, initial=0.0))
+        new = self.tracker.contacts_of(helix, kin, st.time, margins, moved_ids, slack)
+        if new is None:
+            return self._full_contacts(system, pose, t0, moved)
+        self._contacts_at[moved_ids] = st.curvatures[moved_ids]
+        self.refreshed_strands += len(moved_ids)
+        stay = np.flatnonzero(~touching(kept.contacts, moved_ids, helix.n_strands))
+        radius = new.radius
+        old = kept.contacts.subset(stay)
+        old.radius = new.radius = None
+        contacts = Contacts.concatenate([old, new])
+        contacts.radius = radius
+        t0 = self._time("detect", t0)
+        system.stats["contacts"] = len(contacts.strand_a)
+        system.contacts = contacts
+        if len(contacts.strand_a) == 0:
+            return system
+        parts = [kept.H[(3 * stay[:, None] + np.arange(3)).ravel()]]
+        if len(new.strand_a):
+            involved = np.union1d(new.strand_a, new.strand_b[new.strand_b >= 0])
+            part, part_kin = strand_part(helix, kin, involved)
+            parts.append(contact_jacobian_part(part, part_kin, new, involved, helix.flat_offsets()))
+        system.H = sp.vstack(parts, format="csr")
+        t0 = self._time("jacobian", t0)
+        w = np.zeros((len(contacts.strand_a), 3))
+        w[:len(stay)] = kept.w.reshape(-1, 3)[stay]
+        w[len(stay):, 0] = -self.tracker.targets(new)
+        self._build_problem(system, w.ravel(), moved, np.concatenate([stay, np.full(len(new.strand_a), -1)]))
+        self._time("contact_setup", t0)
+        return system
+
+    def _full_contacts(self, system: StepSystem, pose, t0: float, moved: np.ndarray) -> StepSystem:
+        """A partial step's contacts all made anew (_contact_system)."""
+        if self._contacts_at is not None:
+            self._contacts_at[:] = self.state.curvatures
+        return self._contact_system(system, pose, t0, refactored=moved)
+
+    def _build_problem(self, system: StepSystem, w: np.ndarray, refactored: np.ndarray | None = None,
+                       kept_rows: np.ndarray | None = None) -> None:
         """The contact problem u~ = W r~ + b~ with W = H Mhat^-1 H^T (dense Mhat^-1 blocks only for the
         strands in contact, and of those only on the dofs up to their farthest contact's element), in
         impulse units r = r_scale r~, u = r_scale u~ (the block Gauss-Seidel normalises every local
@@ -622,23 +717,45 @@ class Simulator:
             system.contacts = system.contacts.subset(keep)
             system.H = H
             w = w.reshape(-1, 3)[keep].ravel()
+            kept_rows = kept_rows[keep] if kept_rows is not None else None
         system.w = w
         b = H @ helix.to_flat(system.v_free).ravel() + w
         touched = np.flatnonzero(k > 0)
-        # a partial assembly: a strand whose Mhat was kept and whose contacts move as many dofs as in the kept problem
-        # has the same block (the same factor, the same k): taken from there instead of inverted again
+        # a partial assembly: a strand whose Mhat was kept has the kept problem's block where its contacts move as many
+        # dofs (the same factor, the same k), or its leading part where they move fewer ((Mhat^-1)[:k, :k] of the kept
+        # (Mhat^-1)[:k', :k']): taken from there instead of inverted again
         kept = self._at_rest.system.leading if refactored is not None and self._at_rest is not None else None
-        blocks = [kept[1][s] if kept is not None and not refactored[s] and kept[0][s] == k[s] and s in kept[1]
-                  else system.factors.leading_inverse(s, int(k[s])) for s in touched]
+        same = np.zeros(len(k), dtype=bool)  # strands whose D block is the kept one as it is
+        blocks = []
+        for s in touched:
+            if kept is not None and not refactored[s] and s in kept[1] and kept[0][s] >= k[s]:
+                same[s] = kept[0][s] == k[s]
+                blocks.append(kept[1][s] if same[s] else kept[1][s][:k[s], :k[s]])
+            else:
+                blocks.append(system.factors.leading_inverse(s, int(k[s])))
         g = float(np.linalg.norm(self.gravity))
         r_scale = self.inertia.linear * float(np.mean(helix.strand_lengths)) * max(g * self.params.dt, 1e-3)
         mu = np.full(len(system.contacts.strand_a), self.friction)
-        system.problem = ContactProblem(H=H_moved, D_blocks=blocks,
-                                        dof_offsets=np.concatenate([[0], np.cumsum(k[touched])]), gamma=0.0,
-                                        b=b / r_scale, mu=mu)
+        system.problem = ContactProblem.from_dense_blocks(H_moved, blocks, np.concatenate([[0], np.cumsum(k[touched])]),
+                                                          0.0, b / r_scale, mu,
+                                                          like=self._at_rest.system.problem if kept is not None else None)
         system.leading = (k, dict(zip(touched.tolist(), system.problem.D_blocks)))
         system.r_scale = system.u_scale = r_scale
-        system.r0 = (self.tracker.initial_impulses(system.contacts) / r_scale).ravel()
+        carried = None
+        if kept_rows is not None:  # a partial step (_partial_contacts): W's cached parts of the kept contacts carried
+            old = self._at_rest.system
+            old_k = old.leading[0]
+            old_touched = np.flatnonzero(old_k > 0)
+            start = np.full(len(k), -1, dtype=np.int64)
+            start[touched] = system.problem.dof_offsets[:-1]
+            dof_strand = np.repeat(old_touched, old_k[old_touched])
+            local = np.arange(old.problem.n_dofs) - np.repeat(old.problem.dof_offsets[:-1], old_k[old_touched])
+            columns = np.where(same[dof_strand], start[dof_strand] + local, -1)
+            a, bb = system.contacts.strand_a, system.contacts.strand_b
+            rows = np.where(same[a] & ((bb < 0) | same[np.maximum(bb, 0)]), kept_rows, -1)
+            system.problem.carry_cache(old.problem, rows, columns)
+            carried = (old.contacts, kept_rows)
+        system.r0 = (self.tracker.initial_impulses(system.contacts, carried) / r_scale).ravel()
 
     def solve_contacts(self, system: StepSystem) -> np.ndarray:
         """Impulses r (m, 3) in newton-seconds, contact frames (N, T1, T2): the Coulomb law (De Saxce).
@@ -836,6 +953,7 @@ def simulate(helix: sh.SuperHelix, rest_curvatures, material: Material, gravity,
              "steps_at_rest": sim.reused_steps,
              "steps_partially_assembled": sim.partial_steps,
              "strands_partially_assembled": sim.partial_strands,
+             "strands_contacts_refreshed": sim.refreshed_strands,
              "model": "clothoid" if sim.clothoid else "superhelix",
              "velocity_terms": sim.velocity_terms}
     return SimulationResult(times=np.array(times), frames=np.stack(frames), offsets=offsets, tips=np.stack(tips),

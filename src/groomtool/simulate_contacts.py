@@ -247,6 +247,26 @@ def strand_rows(offsets: np.ndarray, strands: np.ndarray) -> tuple[np.ndarray, n
     return rows, sub
 
 
+def touching(contacts, strands, n_strands: int) -> np.ndarray:
+    """(m,) whether each contact has a side (strand_a, or strand_b of a strand/strand contact) in ``strands``."""
+    on = np.zeros(n_strands, dtype=bool)
+    on[np.asarray(strands, dtype=np.int64)] = True
+    b = np.asarray(contacts.strand_b, dtype=np.int64)
+    return on[np.asarray(contacts.strand_a, dtype=np.int64)] | ((b >= 0) & on[np.maximum(b, 0)])
+
+
+def strand_part(helix: sh.SuperHelix, kin, ids: np.ndarray):
+    """Strands ``ids`` (sorted) of a Super-Helix groom and their kinematics, gathered from ``kin`` (nothing
+    recomputed; trimmed to their largest element count): sampling, evaluating or differentiating them there gives
+    the whole groom's numbers for those strands (a partial step's contacts, Simulator._partial_contacts)."""
+    ids = np.asarray(ids, dtype=np.int64)
+    part = helix.subset(ids)
+    n = part.max_elements
+    per_element = {name: getattr(kin, name)[ids, :n] for name in ("Q", "p", "P", "D", "DP", "Theta", "z")}
+    return part, sh.Kinematics(part, kin.C[ids, :n + 1], kin.R[ids, :n + 1], c=kin.c[:, ids, :n],
+                               dc=kin.dc[:, ids, :n], **per_element)
+
+
 # --------------------------------------------------------------------------- the tracker
 class ContactTracker:
     """Which contacts enter each step's problem, and their warm start.
@@ -274,6 +294,10 @@ class ContactTracker:
         self.passes = 0  # steps that ran a detection pass (strand/strand, or head for some strands)
         self.reused = 0  # steps served by the kept candidates alone
         self.head_redetections = 0  # strand-steps whose head contacts were detected again
+        self._sample_offsets = None  # the sample offsets of the whole groom (the last _samples)
+        # per strand e_s = D_s + G_s at its last sampling: its largest sample displacement since the strand/strand pass
+        # and the growth of its strand margin since then (contacts_of)
+        self._pair_excess = None
 
     # ---------------------------------------------------------------- margins
     def margins(self, speeds) -> tuple[np.ndarray, np.ndarray]:
@@ -290,6 +314,7 @@ class ContactTracker:
     # ---------------------------------------------------------------- detection
     def _samples(self, helix, kin, t):
         pts, offsets, _, arc = rod_module(helix).sample(helix, self.params.samples_per_element, kin)
+        self._sample_offsets = offsets
         transform = self.motion.transform(t)
         if transform is not None:
             R, T = transform
@@ -305,9 +330,12 @@ class ContactTracker:
         c = self.cache
         moved = None
         if c is not None and c.samples.shape == pts.shape:
-            moved = float(np.sqrt(np.max(np.sum((pts - c.samples) ** 2, axis=1), initial=0.0)))
-            grow = max(0.0, float(np.max(margins[1] - c.margins[1], initial=0.0)))
+            per_strand = np.sqrt(np.maximum.reduceat(np.sum((pts - c.samples) ** 2, axis=1), offsets[:-1]))
+            moved = float(np.max(per_strand, initial=0.0))
+            growth = np.maximum(np.asarray(margins[1], dtype=np.float64) - c.margins[1], 0.0)
+            grow = float(np.max(growth, initial=0.0))
             if c.skin > 0.0 and moved + grow <= 0.5 * c.skin:
+                self._pair_excess = per_strand + growth
                 return revisit(pts, offsets, arc, c.candidates, self.head_surface), False
         # strands that moved by more than half the skin since the last pass would not keep the next one
         # either: detect without the skin (same contacts, a cheaper pass)
@@ -316,44 +344,61 @@ class ContactTracker:
         s_max = float(np.max(r_s, initial=self.radius))
         found = detect_strand_contacts(pts, offsets, arc, r_s + 0.5 * skin, min_self_arc=np.pi * s_max,
                                        merge_arc=4.0 * s_max)
-        self.cache = DetectionCache(pts, margins, found, skin)
+        self.cache = DetectionCache(pts, tuple(np.broadcast_to(np.asarray(m, dtype=np.float64), (len(offsets) - 1,))
+                                               for m in margins), found, skin)
+        self._pair_excess = np.zeros(len(offsets) - 1)
         return found, True
 
-    def _head(self, pts, offsets, arc, margins) -> tuple[object, bool]:
+    def _head(self, pts, offsets, arc, margins, ids=None) -> tuple[object, bool]:
         """Strand/head contacts on the samples (head's frame), strand by strand: the kept candidates of the
-        strands that pass their own test (module docstring) revisited, the others' detected again.  Returns
-        (contacts ordered by strand, whether any strand was detected)."""
+        strands that pass their own test (module docstring) revisited, the others' detected again.  ``ids``: the
+        (sorted) strands whose samples pts, offsets and arc are (local strand k is ids[k]; None: all, the full
+        groom's samples).  Returns (the contacts of those strands, ordered by strand, whether any strand was
+        detected)."""
         from .contact import Contacts, detect_head_contacts
 
-        S = len(offsets) - 1
+        S = len(self._sample_offsets) - 1 if ids is not None else len(offsets) - 1
+        ids = np.arange(S) if ids is None else np.asarray(ids, dtype=np.int64)
+        rows_all = strand_rows(self._sample_offsets, ids)[0] if len(ids) != S else np.arange(len(pts))
         c = self.head_cache
         head_margin = np.broadcast_to(np.asarray(margins[0], dtype=np.float64), (S,))
-        if c is None or c.samples.shape != pts.shape:
-            c = self.head_cache = HeadCache(pts.copy(), np.zeros(S), np.zeros(S), None)
-            stale = np.ones(S, dtype=bool)
+        if c is None or c.samples.shape[0] != int(self._sample_offsets[-1]):
+            c = self.head_cache = HeadCache(np.zeros((int(self._sample_offsets[-1]), 3)), np.zeros(S), np.zeros(S),
+                                            None)
+            stale = np.ones(len(ids), dtype=bool)
         else:
-            moved = np.maximum.reduceat(np.sqrt(np.sum((pts - c.samples) ** 2, axis=1)), offsets[:-1])
-            stale = ~(moved + np.maximum(head_margin - c.margin, 0.0) <= c.skin) | (c.skin <= 0.0)
-        old = kept = None  # the candidates of the strands that keep theirs, and those revisited
+            moved = np.maximum.reduceat(np.sqrt(np.sum((pts - c.samples[rows_all]) ** 2, axis=1)), offsets[:-1])
+            stale = ~(moved + np.maximum(head_margin[ids] - c.margin[ids], 0.0) <= c.skin[ids]) | (c.skin[ids] <= 0.0)
+        local = np.full(S, -1, dtype=np.int64)  # global strand -> position in ids
+        local[ids] = np.arange(len(ids))
+        redo_global = np.zeros(S, dtype=bool)
+        redo_global[ids[stale]] = True
+        old = kept = None  # the candidates of the strands that keep theirs (all strands), and ids' revisited
         if c.candidates is not None and len(c.candidates.strand_a):
-            old = c.candidates.subset(~stale[c.candidates.strand_a])
-            if len(old.strand_a):
-                kept = revisit(pts, offsets, arc, old, self.head_surface)
-        redo = np.flatnonzero(stale)
+            old = c.candidates.subset(~redo_global[c.candidates.strand_a])
+            mine = old.subset(local[old.strand_a] >= 0) if len(ids) != S else old
+            if len(mine.strand_a):
+                mine.strand_a = local[mine.strand_a]
+                kept = revisit(pts, offsets, arc, mine, self.head_surface)
+                kept.strand_a = ids[kept.strand_a]
+            if not len(old.strand_a):
+                old = None
+        redo = np.flatnonzero(stale)  # local
         if len(redo) == 0:
             return kept, False
         # a strand moving by more than half the skin a step (its margin, 1.5 h |v|) could not keep its
         # candidates the next step either: detected without the skin (the same contacts, a cheaper pass)
-        skin = np.where(head_margin[redo] <= 0.5 * self.skin, self.skin, 0.0)
+        g = ids[redo]
+        skin = np.where(head_margin[g] <= 0.5 * self.skin, self.skin, 0.0)
         r_h = self.radius + head_margin
         h_max = float(np.max(r_h, initial=self.radius))
         rows, sub = strand_rows(offsets, redo)
-        found = detect_head_contacts(pts[rows], sub, arc[rows], self.head_surface, r_h[redo] + skin,
+        found = detect_head_contacts(pts[rows], sub, arc[rows], self.head_surface, r_h[g] + skin,
                                      min_root_arc=np.pi * h_max, merge_arc=4.0 * h_max)
-        found.strand_a = redo[found.strand_a]
-        c.samples[rows] = pts[rows]
-        c.margin[redo] = head_margin[redo]
-        c.skin[redo] = skin
+        found.strand_a = g[found.strand_a]
+        c.samples[rows_all[rows]] = pts[rows]
+        c.margin[g] = head_margin[g]
+        c.skin[g] = skin
         self.head_redetections += len(redo)
         found.radius = None
         merged = Contacts.concatenate([x for x in (old, found) if x is not None])
@@ -400,16 +445,21 @@ class ContactTracker:
         return self.initial
 
     # ---------------------------------------------------------------- persistence
-    def persistent(self, helix: sh.SuperHelix, kin, t: float, detected, margins: tuple[float, float]):
+    def persistent(self, helix: sh.SuperHelix, kin, t: float, detected, margins: tuple[float, float],
+                   strands: np.ndarray | None = None):
         """Previous-step contacts that carried load (r_N > 0), not re-detected nearby, re-evaluated at
         their arc lengths on the current geometry and kept while within reach: a strand draped over
-        a smooth surface keeps several supports instead of one that hops between samples."""
+        a smooth surface keeps several supports instead of one that hops between samples.  ``strands``: only
+        the contacts that touch them (contacts_of)."""
         from .contact import Contacts
 
         if self.previous is None or self.previous[1] is None or len(self.previous[1]) == 0:
             return detected
         prev, imp = self.previous
-        cand = prev.subset(imp[:, 0] > 0)
+        loaded = imp[:, 0] > 0
+        if strands is not None:
+            loaded &= touching(prev, strands, helix.n_strands)
+        cand = prev.subset(loaded)
         if len(cand) and len(detected):
             spacing = float(np.mean(self.lengths[self.mask])) / self.params.samples_per_element
             cand = cand.subset(match_contacts(detected, cand, max(4.0 * self.radius, spacing)) < 0)
@@ -426,6 +476,73 @@ class ContactTracker:
     def contacts(self, helix: sh.SuperHelix, kin, t: float, margins: tuple[float, float]):
         """The step's contacts: detected (or kept) plus the persistent ones."""
         return self.persistent(helix, kin, t, self.detect(helix, kin, t, margins), margins)
+
+    def contacts_of(self, helix: sh.SuperHelix, kin, t: float, margins, strands: np.ndarray, slack: float = 0.0):
+        """The step's contacts that touch ``strands`` (sorted; a partial step, Simulator._partial_contacts: the other
+        strands keep theirs), found as contacts() finds them, on the strands involved alone: the kept strand/strand
+        candidates with a side in ``strands`` revisited on the samples of both sides, the head contacts of ``strands``
+        (kept or detected again strand by strand, _head), the previous step's loaded contacts of ``strands``
+        (persistent), filtered by the thresholds.  Super-Helices under a static head.  None where the kept
+        strand/strand candidates cannot serve (or there are none yet): the caller then takes contacts().
+
+        The candidates serve when every pair of a strand a of ``strands`` and any strand b was a candidate if now
+        within its threshold: e_a + e_b <= skin with e_s = D_s + G_s (the strand's largest sample displacement since
+        the pass and the growth of its strand margin since then: the per-pair form of the module docstring's test),
+        e fresh for the strands sampled here, for the others the value at their last sampling plus ``slack`` (how far
+        their samples may have moved since: the caller's bound for strands that did not move)."""
+        from .contact import Contacts
+
+        if self._sample_offsets is None or self.motion.transform(t) is not None or isinstance(helix, cl.SuperClothoid):
+            return None
+        strands = np.asarray(strands, dtype=np.int64)
+        S = helix.n_strands
+        c = pairs = None
+        involved = strands
+        if self.params.contacts == "all":
+            c = self.cache
+            if c is None or not c.skin > 0.0 or self._pair_excess is None:
+                return None
+            pairs = c.candidates.subset(touching(c.candidates, strands, S))
+            involved = np.union1d(strands, np.concatenate([pairs.strand_a, pairs.strand_b[pairs.strand_b >= 0]]))
+        part, part_kin = strand_part(helix, kin, involved)
+        pts, offsets, _, arc = sh.sample(part, self.params.samples_per_element, part_kin)
+        local = np.full(S, -1, dtype=np.int64)  # global strand -> its position in involved
+        local[involved] = np.arange(len(involved))
+        found = []
+        if c is not None:
+            rows = strand_rows(self._sample_offsets, involved)[0]
+            fresh = np.sqrt(np.maximum.reduceat(np.sum((pts - c.samples[rows]) ** 2, axis=1), offsets[:-1]))
+            fresh += np.maximum(np.asarray(margins[1], dtype=np.float64)[involved] - c.margins[1][involved], 0.0)
+            excess = self._pair_excess + slack
+            excess[involved] = fresh
+            if not float(np.max(excess[strands], initial=0.0)) + float(np.max(excess, initial=0.0)) <= c.skin:
+                return None
+            self._pair_excess[involved] = fresh
+            if len(pairs.strand_a):
+                head_b = pairs.strand_b < 0
+                pairs.strand_a = local[pairs.strand_a]
+                pairs.strand_b = np.where(head_b, pairs.strand_b, local[np.maximum(pairs.strand_b, 0)])
+                near = revisit(pts, offsets, arc, pairs, self.head_surface)
+                near.strand_a = involved[near.strand_a]
+                near.strand_b = np.where(head_b, near.strand_b, involved[np.maximum(near.strand_b, 0)])
+                found.append(near)
+        ran = False
+        if self.head_surface is not None:
+            rows, sub = strand_rows(offsets, local[strands])
+            part_head, ran = self._head(pts[rows], sub, arc[rows], margins, ids=strands)
+            if part_head is not None:
+                found.append(part_head)
+        if ran:
+            self.passes += 1
+        else:
+            self.reused += 1
+        for x in found:
+            x.radius = None
+        found = Contacts.concatenate(found) if found else Contacts.empty()
+        keep = found.distance <= contact_thresholds(found, self.radius, margins)
+        out = found.subset(keep)
+        out.radius = self.radius + float(np.max(margins[1], initial=0.0))
+        return self.persistent(helix, kin, t, out, margins, strands=strands)
 
     # ---------------------------------------------------------------- targets and warm start
     def allowed_depth(self, contacts) -> np.ndarray:
@@ -449,13 +566,25 @@ class ContactTracker:
         return normal_velocity_targets(contact_gaps(contacts, self.radius), self.allowed_depth(contacts), p.dt,
                                        p.push_rate, p.max_push_speed)
 
-    def initial_impulses(self, contacts) -> np.ndarray:
+    def initial_impulses(self, contacts, carried=None) -> np.ndarray:
         """(m, 3) impulses (N s) to start the solve from: the previous step's on the matching contacts
-        (same strands, arc lengths within 2 r_c), else the warm start's."""
+        (same strands, arc lengths within 2 r_c), else the warm start's.  ``carried`` = (old, rows): contact i is
+        contact rows[i] of the contact set ``old`` (-1: another); where the previous step's set is ``old``, those
+        take its impulses as they are (what matching finds: the same contact) and only the others are matched."""
         r0 = np.zeros((len(contacts.strand_a), 3))
         known = self.previous if self.previous is not None and self.previous[1] is not None else self.warm_start
         if known is not None and known[0] is contacts and len(known[1]) == len(r0):  # the same set (a step at rest)
             return np.array(known[1], dtype=np.float64)
+        if (carried is not None and known is not None and known[0] is carried[0]
+                and len(known[1]) == len(carried[0].strand_a)):
+            rows = np.asarray(carried[1], dtype=np.int64)
+            has = rows >= 0
+            r0[has] = known[1][rows[has]]
+            rest = np.flatnonzero(~has)
+            if len(rest) and len(known[1]):
+                idx = match_contacts(known[0], contacts.subset(rest), 2.0 * self.radius + 1e-12)
+                r0[rest[idx >= 0]] = known[1][idx[idx >= 0]]
+            return r0
         if known is not None and len(known[1]):
             idx = match_contacts(known[0], contacts, 2.0 * self.radius + 1e-12)
             has = idx >= 0

@@ -126,6 +126,29 @@ def contact_jacobian(helix, contacts, kin=None) -> sp.csr_matrix:
     return H
 
 
+def contact_jacobian_part(part: sh.SuperHelix, part_kin: sh.Kinematics, contacts, strands, flat_offsets) -> sp.csr_matrix:
+    """contact_jacobian's H of ``contacts`` whose strands are all among ``strands`` (sorted), computed on those
+    strands alone: ``part`` = helix.subset(strands) with its kinematics (gathered from the whole groom's), the columns
+    those of the whole groom (``flat_offsets`` (S + 1,) its elements' offsets).  The same entries as contact_jacobian
+    on the whole groom, in O(the strands' elements) instead of the whole groom's upstream terms (a simulator's
+    partial step: Simulator._partial_contacts)."""
+    strands = np.asarray(strands, dtype=np.int64)
+    flat_offsets = np.asarray(flat_offsets, dtype=np.int64)
+    local = np.full(len(flat_offsets) - 1, -1, dtype=np.int64)
+    local[strands] = np.arange(len(strands))
+    mine = contacts.subset(np.arange(len(contacts.strand_a)))
+    mine.strand_a = local[mine.strand_a]
+    mine.strand_b = np.where(mine.strand_b >= 0, local[np.maximum(mine.strand_b, 0)], mine.strand_b)
+    H = contact_jacobian(part, mine, part_kin)
+    part_offsets = part.flat_offsets()
+    dof_strand = np.repeat(np.arange(len(strands)), 3 * np.diff(part_offsets))
+    shift = 3 * (flat_offsets[strands] - part_offsets[:-1])
+    indices = H.indices.astype(np.int64) + shift[dof_strand[H.indices]]
+    out = sp.csr_matrix((H.data, indices, H.indptr), shape=(H.shape[0], 3 * int(flat_offsets[-1])), copy=False)
+    out.has_sorted_indices = True  # strands in the same order, shifted
+    return out
+
+
 @njit(cache=True)
 def _add_side(F, sign, x, own, B, Theta, strand, elem, col0, pos0, start, row_len, accumulate, J, data, indices):
     """Write (or add, if ``accumulate``) sign F J_k for k = 0..elem (J_k = B_k - [x]x Theta_k,

@@ -225,6 +225,66 @@ class PackedRows:
         return self.ptr.nbytes + self.cols.nbytes + self.vals.nbytes
 
 
+@njit(cache=True)
+def _take_panels(ptr, cols, vals, idx, col_map, out_ptr, out_cols, out_vals):
+    """Contact i of the output (where idx[i] >= 0) takes the panel of contact idx[i], its columns through col_map
+    (empty: kept)."""
+    remap = col_map.shape[0] > 0
+    for i in range(idx.shape[0]):
+        src = idx[i]
+        if src < 0:
+            continue
+        o = out_ptr[i]
+        for p in range(ptr[src], ptr[src + 1]):
+            out_cols[o] = col_map[cols[p]] if remap else cols[p]
+            out_vals[o, 0] = vals[p, 0]
+            out_vals[o, 1] = vals[p, 1]
+            out_vals[o, 2] = vals[p, 2]
+            o += 1
+
+
+def merge_rows(sources) -> "PackedRows":
+    """PackedRows whose contact i is, for the one source (P, idx, col_map) with idx[i] >= 0, the panel of P's contact
+    idx[i] with its columns through col_map (old column -> new; None: kept).  Every contact of the output must have
+    exactly one source.  One compiled pass over the entries taken."""
+    sources = list(sources)
+    m = len(sources[0][1])
+    counts = np.zeros(m, dtype=np.int64)
+    for P, idx, _ in sources:
+        idx = np.asarray(idx, dtype=np.int64)
+        on = idx >= 0
+        counts[on] += P.ptr[idx[on] + 1] - P.ptr[idx[on]]
+    ptr = np.zeros(m + 1, dtype=np.int64)
+    np.cumsum(counts, out=ptr[1:])
+    dtype = np.result_type(*[P.cols.dtype for P, _, _ in sources])
+    cols = np.empty(int(ptr[-1]), dtype=dtype)
+    vals = np.empty((int(ptr[-1]), 3))
+    for P, idx, col_map in sources:
+        col_map = np.zeros(0, dtype=np.int64) if col_map is None else np.ascontiguousarray(col_map, dtype=np.int64)
+        _take_panels(P.ptr, P.cols, P.vals, np.ascontiguousarray(idx, dtype=np.int64), col_map, ptr, cols, vals)
+    return PackedRows(ptr, cols, vals)
+
+
+def upper_from_blocks(m: int, i, j, blocks) -> "UpperBlockDelassus":
+    """W's upper block triangle from its blocks W_ij (k, 3, 3), given once each with either i <= j or i > j (then
+    transposed into (j, i)); every contact needs its diagonal block among them (none is added)."""
+    i = np.asarray(i, dtype=np.int64)
+    j = np.asarray(j, dtype=np.int64)
+    blocks = np.asarray(blocks, dtype=np.float64)
+    swap = i > j
+    if np.any(swap):
+        i, j = np.where(swap, j, i), np.where(swap, i, j)
+        blocks = np.where(swap[:, None, None], np.transpose(blocks, (0, 2, 1)), blocks)
+    indptr, cols, out = _rows_from_pairs(m, i, j, np.ascontiguousarray(blocks), 0.0)
+    return UpperBlockDelassus(indptr, cols.astype(np.int32 if m < 2**31 else np.int64), out)
+
+
+def upper_blocks(W: "UpperBlockDelassus") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(i, j, blocks) of every stored block of W (i <= j)."""
+    m = W.n_contacts
+    return np.repeat(np.arange(m), np.diff(W.indptr)), np.asarray(W.indices, dtype=np.int64), W.blocks
+
+
 # ----------------------------------------------------------------------------------------------
 # direct assembly of the upper block triangle of W = H D H^T + 2 gamma I, strand by strand
 # ----------------------------------------------------------------------------------------------

@@ -15,7 +15,8 @@ import numpy as np
 import scipy.sparse as sp
 
 from . import residual as _res
-from .blocks import PackedRows, diagonal_blocks, pack_HD, strand_blocks_apply
+from .blocks import (PackedRows, diagonal_blocks, merge_rows, pack_HD, strand_blocks_apply, upper_blocks,
+                     upper_from_blocks)
 
 
 @dataclass
@@ -40,7 +41,37 @@ class ContactProblem:
     mu: np.ndarray | float
     _cache: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
+    @classmethod
+    def from_dense_blocks(cls, H, D_blocks, dof_offsets, gamma, b, mu, like: "ContactProblem | None" = None
+                          ) -> "ContactProblem":
+        """The problem with dense (n_s, n_s) D blocks that are not diagonal (the simulator's Mhat^-1 blocks), stored
+        without the constructor's per-block test for an exactly diagonal block (harolongo: ~0.5 s for its 4,706
+        blocks).  ``like``: a problem whose D storage is shared (not copied: harolongo's is 185 MB) where D_blocks
+        are its own blocks, every one, in order."""
+        self = cls.__new__(cls)
+        self.H, self.dof_offsets, self.gamma, self.b, self.mu = H, dof_offsets, gamma, b, mu
+        self._cache = {}
+        self._check()
+        sizes = np.diff(self.dof_offsets)
+        if (like is not None and len(like.D_blocks) == len(D_blocks) and not np.any(like.D_is_diag)
+                and all(d is e for d, e in zip(D_blocks, like.D_blocks))):
+            self.D_is_diag, self.D_ptr, self.D_data, self.D_blocks = like.D_is_diag, like.D_ptr, like.D_data, like.D_blocks
+            return self
+        blocks = [np.asarray(d, dtype=np.float64) for d in D_blocks]
+        if len(blocks) != len(sizes) or any(d.shape != (k, k) for d, k in zip(blocks, sizes)):
+            raise ValueError("D_blocks must be one dense (n_s, n_s) block per strand")
+        self.D_is_diag = np.zeros(len(blocks), dtype=np.bool_)
+        self.D_ptr = np.zeros(len(blocks) + 1, dtype=np.int64)
+        np.cumsum(sizes * sizes, out=self.D_ptr[1:])
+        self.D_data = np.concatenate([d.reshape(-1) for d in blocks]) if blocks else np.zeros(0)
+        self.D_blocks = [self.D_data[a:a + k * k].reshape(k, k) for a, k in zip(self.D_ptr[:-1].tolist(), sizes.tolist())]
+        return self
+
     def __post_init__(self) -> None:
+        self._check()
+        self.D_blocks = self._normalise_blocks(self.D_blocks)
+
+    def _check(self) -> None:
         self.H = sp.csr_matrix(self.H, dtype=np.float64)
         self.H.sort_indices()
         self.dof_offsets = np.ascontiguousarray(self.dof_offsets, dtype=np.int64)
@@ -59,7 +90,6 @@ class ContactProblem:
         self.gamma = float(self.gamma)
         if self.gamma < 0:
             raise ValueError("gamma must be >= 0")
-        self.D_blocks = self._normalise_blocks(self.D_blocks)
 
     def _normalise_blocks(self, blocks):
         """Store D flat (self.D_data, D_ptr, D_is_diag: strand s's block is D_data[D_ptr[s]:D_ptr[s+1]],
@@ -175,6 +205,91 @@ class ContactProblem:
         other = copy.copy(self)
         other.b = b
         return other
+
+    def part(self, contacts) -> tuple["ContactProblem", np.ndarray]:
+        """The problem of the contacts ``contacts`` (sorted indices) alone, on the strands they touch: (problem, those
+        strands); b = 0.  W's blocks among those contacts are this problem's."""
+        contacts = np.asarray(contacts, dtype=np.int64)
+        rows = (3 * contacts[:, None] + np.arange(3)).ravel()
+        Hc = self.H[rows]
+        strand_of = np.searchsorted(self.dof_offsets, Hc.indices, side="right") - 1
+        strands = np.unique(strand_of)
+        sizes = np.diff(self.dof_offsets)[strands]
+        offsets = np.zeros(len(strands) + 1, dtype=np.int64)
+        np.cumsum(sizes, out=offsets[1:])
+        shift = offsets[:-1] - self.dof_offsets[strands]
+        cols = Hc.indices + shift[np.searchsorted(strands, strand_of)]
+        H = sp.csr_matrix((Hc.data, cols, Hc.indptr), shape=(len(rows), int(offsets[-1])))
+        part = ContactProblem(H, [self.D_blocks[s] for s in strands], offsets, self.gamma, np.zeros(len(rows)),
+                              self.mu[contacts])
+        return part, strands
+
+    def carry_cache(self, old: "ContactProblem", rows: np.ndarray, columns: np.ndarray) -> None:
+        """Take what ``old`` has cached of W (its diagonal blocks; the upper block triangle, natural order; the packed
+        H D panels) for the contacts that kept their rows of W, and compute the rest on the other contacts alone.
+
+        rows (m,): per contact of this problem, its index in ``old`` where its H row (the columns renumbered by
+        ``columns``: old dof -> this problem's, -1 none) and the D blocks of its strands are old's, else -1.  W_ij of
+        two such contacts is old's (they touch only strands whose blocks are old's); every block of W with another
+        contact is computed here (part(): the contacts on the strands that the others touch), as are their diagonal
+        blocks and H D panels.  The same W as computing it all anew, to round-off (a simulator's partial step:
+        Simulator._partial_contacts)."""
+        rows = np.asarray(rows, dtype=np.int64)
+        columns = np.asarray(columns, dtype=np.int64)
+        m = self.n_contacts
+        kept = np.flatnonzero(rows >= 0)
+        fresh = np.flatnonzero(rows < 0)
+        cache = old._cache
+        upper = cache.get("upper")
+        upper = upper[1] if upper is not None and upper[0] is None else None
+        if len(kept) == 0 or ("diag" not in cache and upper is None):
+            return
+        H = self.packed_H()
+        contact_of = np.repeat(np.arange(m), np.diff(H.ptr))
+        strand_of = np.repeat(np.arange(self.n_strands), np.diff(self.dof_offsets))[H.cols]
+        on_fresh = np.zeros(self.n_strands, dtype=bool)
+        on_fresh[strand_of[np.isin(contact_of, fresh)]] = True
+        # the contacts whose blocks are computed: the fresh ones, and (for W's off-diagonal blocks) those they share a
+        # strand with
+        near = np.unique(contact_of[on_fresh[strand_of]]) if upper is not None else fresh
+        near = np.union1d(near, fresh)
+        if len(near):
+            part, strands = self.part(near)
+            where = np.searchsorted(near, fresh)
+            pdiag = part.diagonal_blocks()
+        if "diag" in cache:
+            diag = np.empty((m, 3, 3))
+            diag[kept] = cache["diag"][rows[kept]]
+            if len(fresh):
+                diag[fresh] = pdiag[where]
+            self._cache["diag"] = diag
+        if upper is not None:
+            new_of_old = np.full(old.n_contacts, -1, dtype=np.int64)
+            new_of_old[rows[kept]] = kept
+            i, j, blk = upper_blocks(upper)
+            i, j = new_of_old[i], new_of_old[j]
+            both = (i >= 0) & (j >= 0)
+            parts_i, parts_j, parts_b = [i[both]], [j[both]], [blk[both]]
+            if len(fresh):
+                from .blocks import assemble_upper
+
+                pi, pj, pb = upper_blocks(assemble_upper(part))
+                pi, pj = near[pi], near[pj]
+                is_fresh = rows < 0
+                sel = is_fresh[pi] | is_fresh[pj]
+                parts_i.append(pi[sel])
+                parts_j.append(pj[sel])
+                parts_b.append(pb[sel])
+            self._cache["upper"] = (None, upper_from_blocks(m, np.concatenate(parts_i), np.concatenate(parts_j),
+                                                            np.concatenate(parts_b)))
+        if "packed" in cache and upper is None:
+            sources = [(cache["packed"][1], rows, columns)]
+            if len(fresh):
+                idx = np.full(m, -1, dtype=np.int64)
+                idx[fresh] = where
+                col_map = np.concatenate([np.arange(self.dof_offsets[s], self.dof_offsets[s + 1]) for s in strands])
+                sources.append((part.packed()[1], idx, col_map))
+            self._cache["packed"] = (H, merge_rows(sources))
 
     # ------------------------------------------------------------------ measures
     def rho(self) -> np.ndarray:
