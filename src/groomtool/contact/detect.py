@@ -810,14 +810,21 @@ def close_segment_pairs(points, offsets, arc, radius, *, min_self_arc: float | N
     speculative margins, strand by strand).  ``min_self_arc`` default pi max(radius).
     ``cell_size``: the hash cell edge (default :func:`default_cell_size`)."""
     points, offsets, arc = check_strands(points, offsets, arc)
+    out, n_out, n_cand, n_group_pairs = _find_pairs(points, offsets, arc, radius, min_self_arc, cell_size)
+    return SegmentPairs(*_sorted_pairs(*out, n_out, len(strand_segments(offsets)[0])), int(n_cand),
+                        int(n_group_pairs))
+
+
+def _find_pairs(points, offsets, arc, radius, min_self_arc, cell_size):
+    """:func:`close_segment_pairs`' pairs in the order the kernel found them: ([i, j, s, t, distance]
+    arrays, of which the first n_pairs rows are the pairs, n_pairs, n_candidates, n_group_pairs)."""
     radii = strand_radii(radius, len(offsets) - 1)
     r_max = float(np.max(radii, initial=0.0))
     if min_self_arc is None:
         min_self_arc = np.pi * r_max
     seg_v0, seg_strand = strand_segments(offsets)
     if len(seg_v0) < 2:
-        e = np.zeros(0)
-        return SegmentPairs(e.astype(np.int64), e.astype(np.int64), e, e, e, 0)
+        return [np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), np.zeros(0), np.zeros(0)], 0, 0, 0
     seg_radius = np.ascontiguousarray(radii[seg_strand])
     first, box, capsule = _segment_groups(points, seg_v0, seg_strand, seg_radius, GROUP_SEGMENTS,
                                           GROUP_DIAMETERS * 2.0 * float(np.min(radii)))
@@ -849,7 +856,7 @@ def close_segment_pairs(points, offsets, arc, radius, *, min_self_arc: float | N
             break
         out = [np.concatenate([x[:n_out], np.empty(len(x), x.dtype)]) for x in out]
     _PAIRS_PER_SEGMENT[0] = 1.25 * n_out / len(seg_v0)
-    return SegmentPairs(*_sorted_pairs(*out, n_out, len(seg_v0)), int(n_cand), int(n_group_pairs))
+    return out, n_out, n_cand, n_group_pairs
 
 
 # ------------------------------------------------------------------------------ deduplication
@@ -910,6 +917,83 @@ def _local_minima_kernel(pi, pj, ps, pt, pd, seg_strand, tol):
                     if d_other < pd[k] - tol or (d_other <= pd[k] + tol and (a < i or (a == i and b < j))):
                         keep[k] = False
     return keep
+
+
+@nb.njit(cache=True)
+def _local_minima_unsorted(pi, pj, ps, pt, pd, n, seg_strand, tol):
+    """:func:`_local_minima_kernel` on the first n pairs in any order (distinct pairs i < j), the
+    neighbours looked up in a hash table of the pairs: the same decisions (each depends on the set of
+    pairs, their values and the (i, j) order of keys only).  Returns the indices of the kept pairs,
+    sorted by (i, j)."""
+    n_seg = seg_strand.shape[0]
+    bits = 1
+    while (1 << bits) < 2 * n:
+        bits += 1
+    mask = (1 << bits) - 1
+    table = np.full((1 << bits, 2), -1, np.int64)  # (key, pair) per slot: one cache line per probe
+    for k in range(n):
+        key = pi[k] * n_seg + pj[k]
+        slot = _pair_slot(key, bits)
+        while table[slot, 1] >= 0:
+            slot = (slot + 1) & mask
+        table[slot, 0] = key
+        table[slot, 1] = k
+    keep = np.ones(n, np.bool_)
+    ni = np.empty(2, np.int64)
+    nj = np.empty(2, np.int64)
+    n_keep = 0
+    for k in range(n):
+        i, j = pi[k], pj[k]
+        if not (0.0 < ps[k] < 1.0 and 0.0 < pt[k] < 1.0):
+            ni[0] = i
+            ci = 1
+            if ps[k] == 0.0 and i > 0 and seg_strand[i - 1] == seg_strand[i]:
+                ni[1] = i - 1
+                ci = 2
+            elif ps[k] == 1.0 and i + 1 < n_seg and seg_strand[i + 1] == seg_strand[i]:
+                ni[1] = i + 1
+                ci = 2
+            nj[0] = j
+            cj = 1
+            if pt[k] == 0.0 and j > 0 and seg_strand[j - 1] == seg_strand[j]:
+                nj[1] = j - 1
+                cj = 2
+            elif pt[k] == 1.0 and j + 1 < n_seg and seg_strand[j + 1] == seg_strand[j]:
+                nj[1] = j + 1
+                cj = 2
+            for x in range(ci):
+                for y in range(cj):
+                    if x == 0 and y == 0:
+                        continue
+                    a = min(ni[x], nj[y])
+                    b = max(ni[x], nj[y])
+                    if a == b:
+                        continue
+                    key = a * n_seg + b
+                    slot = _pair_slot(key, bits)
+                    while table[slot, 1] >= 0:
+                        if table[slot, 0] == key:
+                            d_other = pd[table[slot, 1]]
+                            if d_other < pd[k] - tol or (d_other <= pd[k] + tol and (a < i or (a == i and b < j))):
+                                keep[k] = False
+                            break
+                        slot = (slot + 1) & mask
+        n_keep += keep[k]
+    kept = np.empty(n_keep, np.int64)
+    keys = np.empty(n_keep, np.int64)
+    c = 0
+    for k in range(n):
+        if keep[k]:
+            kept[c] = k
+            keys[c] = pi[k] * n_seg + pj[k]
+            c += 1
+    return kept[np.argsort(keys)]
+
+
+@nb.njit(cache=True, inline="always")
+def _pair_slot(key, bits):
+    """Slot of a pair key in a table of 2^bits slots (Fibonacci hashing)."""
+    return np.int64((np.uint64(key) * np.uint64(11400714819323198485)) >> np.uint64(64 - bits))
 
 
 @nb.njit(cache=True)
@@ -991,12 +1075,14 @@ def detect_strand_contacts(points, offsets, arc, radius, *, min_self_arc: float 
     radius = float(np.max(radius, initial=0.0)) if np.ndim(radius) else radius  # the largest, for the rest
     merge_arc = 4.0 * radius if merge_arc is None else float(merge_arc)
     t0 = time.perf_counter()
-    pairs = close_segment_pairs(points, offsets, arc, radii, min_self_arc=min_self_arc, cell_size=cell_size)
+    (pi, pj, ps, pt, pd), n_pairs, n_cand, n_group_pairs = _find_pairs(points, offsets, arc, radii, min_self_arc,
+                                                                        cell_size)
     seg_v0, seg_strand = strand_segments(offsets)
     t1 = time.perf_counter()
 
-    keep = _local_minima_kernel(pairs.i, pairs.j, pairs.s, pairs.t, pairs.distance, seg_strand, 1e-9 * radius)
-    i, j, s, t, d = (x[keep] for x in (pairs.i, pairs.j, pairs.s, pairs.t, pairs.distance))
+    # the local minima of the pairs (in (i, j) order), without sorting all of them
+    keep = _local_minima_unsorted(pi, pj, ps, pt, pd, n_pairs, seg_strand, 1e-9 * radius)
+    i, j, s, t, d = (x[keep] for x in (pi, pj, ps, pt, pd))
     va, vb = seg_v0[i], seg_v0[j]
     s_a = arc[va] + s * (arc[va + 1] - arc[va])
     s_b = arc[vb] + t * (arc[vb + 1] - arc[vb])
@@ -1015,8 +1101,8 @@ def detect_strand_contacts(points, offsets, arc, radius, *, min_self_arc: float 
     normal = pair_normals(point_a, point_b, dir_a, dir_b, d)
     frame = contact_frames(normal, dir_a) if len(d) else np.zeros((0, 3, 3))
     if stats is not None:
-        stats.update(segments=len(seg_v0), group_pairs=pairs.n_group_pairs, candidates=pairs.n_candidates,
-                     close_pairs=len(pairs.i), local_minima=n_minima, strand_contacts=len(kept),
+        stats.update(segments=len(seg_v0), group_pairs=int(n_group_pairs), candidates=int(n_cand),
+                     close_pairs=int(n_pairs), local_minima=n_minima, strand_contacts=len(kept),
                      time_strand_pairs=t1 - t0,
                      time_strand_dedup=t2 - t1, time_strand_frames=time.perf_counter() - t2)
     return Contacts(strand_a, s_a, strand_b, s_b, point_a, point_b, normal, frame, d, radius)
