@@ -188,7 +188,7 @@ def test_carried_cache_is_the_rebuilt_one_and_a_stale_row_is_caught(form):
 
 
 def test_contacts_that_turned_by_contact_rotation_are_made_anew_without_assembling_the_strand():
-    """A strand turned by more than contact_rotation (reuse_rotation / 10) but less than reuse_rotation keeps its Mhat,
+    """A strand turned by more than contact_rotation (reuse_rotation / 100) but less than reuse_rotation keeps its Mhat,
     A and dF/dq; its contacts, H rows and w are made anew (a partial step assembling no strand), as a full assembly
     makes them."""
     helix, sphere = stacked_strands()

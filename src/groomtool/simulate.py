@@ -32,7 +32,9 @@ r = h r_inv solve the first step exactly: u = W (h r_inv) + b = H Mhat^-1 h (F -
 
 A groom at rest (no element turned by more than params.reuse_rotation since the last full assembly) keeps that
 assembly's M, A, factorised Mhat, contacts and H; F(q), K (q - q0), the right-hand side and the contact solve are
-new every step (Simulator._at_rest_system; docs/simulation.md section 2).
+new every step (Simulator._at_rest_system; docs/simulation.md section 2).  Strands that moved are assembled alone
+(_partial_assembly), and only their contacts and those that turned by params.contact_rotation are made anew, the
+others' rows of H and W kept (_partial_contacts).
 
 Super Space Clothoids (rods/clothoid.py, ``groom invert --model clothoid``) take the same step on their nodal
 curvatures (Simulator._clothoid_dynamics: M with the cross-section rotation, complex-step dF/dq, the block-tridiagonal
@@ -133,10 +135,11 @@ class SimulationParams:
     # solve are new every step (AtRestSystem; 0: assemble every step)
     reuse_rotation: float = 1e-7
     # a strand at rest keeps its contacts, their H rows and w while no element turned by more than this since they were
-    # made (rad; None: reuse_rotation / 10); then a partial step makes them anew (Simulator._partial_contacts).  Kept
+    # made (rad; None: reuse_rotation / 100); then a partial step makes them anew (Simulator._partial_contacts).  Kept
     # as long as the dynamics (reuse_rotation), the contacts of a creeping inverted groom let it creep faster: on
     # harolongo every step from the 39th reassembled strands, 190 a step by the 120th (15,624 strand assemblies
-    # instead of 35); made anew at a tenth of it, its contacts hold it (no strand reassembled in 100 steps)
+    # instead of 35); made anew at reuse_rotation / 10 its 240 steps took 316 s CPU, drift 2.3e-6 m, at / 100 280 s,
+    # 1.1e-6 m (docs/simulation.md section 2)
     contact_rotation: float | None = None
     # Super Space Clothoids: compute their velocity terms A (dyn.clothoid_velocity_terms: exact, by complex steps,
     # 80-170 ms per step on 5-strand USC styles, 2-4x M and dF/dq); off: dropped (exact at rest)
@@ -407,7 +410,7 @@ class Simulator:
         if self._contacts_at is None or self._at_rest.system.problem is None:
             return np.zeros(S, dtype=bool)
         tau = self.params.contact_rotation
-        tau = 0.1 * self.params.reuse_rotation if tau is None else tau
+        tau = 0.01 * self.params.reuse_rotation if tau is None else tau
         dq = self.state.curvatures - self._contacts_at
         turned = np.einsum("sn,sn->s", self.lengths, np.sqrt(np.einsum("snk,snk->sn", dq, dq)))
         return turned >= tau

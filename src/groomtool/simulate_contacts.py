@@ -28,6 +28,11 @@ last head pass and G_h,s the growth of its head margin, its candidates are kept 
 only the strands that fail it are detected again (with the skin unless they move by more than delta / 2 a
 step, from their margin).  A sagging groom whose tips swing re-detects those strands' head contacts, not
 the whole head's.  The strand/strand candidates keep the groom-wide test above.
+
+**A partial step's contacts** (ContactTracker.contacts_of): only the contacts of some strands are made anew (the
+others keep theirs, Simulator._partial_contacts): the kept candidates with a side among them are revisited on the
+samples of the strands involved alone, their head contacts kept or detected strand by strand, under the per-pair
+form of the test above (e_a + e_b <= delta, e_s = D_s + G_s of strand s).
 """
 
 from __future__ import annotations
