@@ -213,3 +213,25 @@ def test_contacts_that_turned_by_contact_rotation_are_made_anew_without_assembli
     sim.state = State(0.0, moved.copy(), np.zeros_like(moved))
     sim.assemble()
     assert sim.reused_steps == 1  # made anew: at rest again
+
+
+def test_a_partial_step_whose_candidates_cannot_serve_makes_every_contact_anew(monkeypatch):
+    """Where the kept strand/strand candidates cannot serve the strands made anew (ContactTracker.contacts_of: a pair's
+    e_a + e_b beyond the skin), the partial step makes all contacts anew (_full_contacts), as a full assembly does."""
+    from groomtool.simulate_contacts import ContactTracker
+
+    calls = []
+    original = ContactTracker.contacts_of
+
+    def far(self, *args, **kwargs):
+        self._pair_excess[:] = self.cache.skin  # every strand as far as the skin from the pass
+        out = original(self, *args, **kwargs)
+        calls.append(out)
+        return out
+
+    monkeypatch.setattr(ContactTracker, "contacts_of", far)
+    partial, fresh, sim = partial_and_fresh("assembled")
+    assert calls == [None]
+    assert discrepancy(partial, fresh, "assembled") <= 1e-12
+    np.testing.assert_array_equal(partial.contacts.strand_a, fresh.contacts.strand_a)  # the full assembly's order
+    assert np.all(sim._contacts_at == sim.state.curvatures)
