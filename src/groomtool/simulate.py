@@ -197,7 +197,8 @@ class StepSystem:
     r0: np.ndarray | None = None
     w: np.ndarray | None = None  # (3m,) the contact velocities that do not depend on v' (moving head, -ubar)
     stats: dict = field(default_factory=dict)
-    # per strand the dofs its contacts move (k_s) and its block (Mhat_s^-1)[:k_s, :k_s] of the problem's D (views)
+    # per strand the dofs its contacts move (k_s) and its block (Mhat_s^-1)[:k_s, :k_s] of the problem's D (views; a
+    # partial step writes the blocks of the strands it refactors over them, as it overwrites their factors)
     leading: tuple | None = None
 
 
@@ -734,6 +735,12 @@ class Simulator:
             if kept is not None and not refactored[s] and s in kept[1] and kept[0][s] >= k[s]:
                 same[s] = kept[0][s] == k[s]
                 blocks.append(kept[1][s] if same[s] else kept[1][s][:k[s], :k[s]])
+            elif kept is not None and s in kept[1] and kept[0][s] == k[s]:
+                # a refactored strand's new block written over its kept one (the same size): the D storage stays
+                # shared (ContactProblem.from_dense_blocks(like=)), as the factors are, which every step overwrites
+                # (harolongo: no copy of its 185 MB of D blocks for the few strands a partial step refactors)
+                kept[1][s][...] = system.factors.leading_inverse(s, int(k[s]))
+                blocks.append(kept[1][s])
             else:
                 blocks.append(system.factors.leading_inverse(s, int(k[s])))
         g = float(np.linalg.norm(self.gravity))
