@@ -4,6 +4,9 @@ tests that compare them (bit for bit).
 * :func:`close_segment_pairs_reference`: :func:`groomtool.contact.detect.close_segment_pairs` by the
   segment-level spatial hash it replaced (every segment box in every cell it overlaps): the same
   pairs, in hash order.
+* :func:`detect_strand_contacts_reference`: :func:`groomtool.contact.detect.detect_strand_contacts` as
+  it was before the unsorted local minima: the reference's pairs (one radius per strand: those of the
+  largest below r_a + r_b), sorted by (i, j), the local minima by a binary search over all pairs.
 * :func:`detect_head_contacts_reference`: :func:`groomtool.contact.head.detect_head_contacts` as it
   was before the distance bounds (every vertex in the head's inflated box queried).
 * :func:`contact_jacobian_reference`: :func:`groomtool.contact.jacobian.contact_jacobian` built from the
@@ -21,6 +24,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from groomtool.contact.detect import (HEAD, Contacts, SegmentPairs, _grow, _segment_params, _self_params,
+                                      pair_normals, strand_radii,
                                       check_strands, merge_close, strand_segments)
 from groomtool.contact.frames import contact_frames
 from groomtool.contact.head import _GOLDEN, HeadSurface, _signed_point, as_head_surface
@@ -199,6 +203,98 @@ def close_segment_pairs_reference(points, offsets, arc, radius: float, *, min_se
         keys[order], ids[order], lo, hi, origin, h, dims[0], dims[1], points, arc, seg_v0, seg_strand,
         2.0 * radius, float(min_self_arc))
     return SegmentPairs(i, j, s, t, d, int(n_cand))
+
+
+# ------------------------------------------------- strand/strand contacts: all pairs sorted, then minima
+@nb.njit(cache=True)
+def _local_minima_searchsorted(pi, pj, ps, pt, pd, seg_strand, tol):
+    """Keep pairs whose closest point is a local minimum of the polyline/polyline distance (pairs
+    sorted by (i, j)); neighbours found by a binary search over all pair keys."""
+    m = pi.shape[0]
+    n_seg = seg_strand.shape[0]
+    keys = pi * n_seg + pj
+    keep = np.ones(m, np.bool_)
+    ni = np.empty(2, np.int64)
+    nj = np.empty(2, np.int64)
+    for k in range(m):
+        i, j = pi[k], pj[k]
+        if 0.0 < ps[k] < 1.0 and 0.0 < pt[k] < 1.0:
+            continue
+        ni[0] = i
+        ci = 1
+        if ps[k] == 0.0 and i > 0 and seg_strand[i - 1] == seg_strand[i]:
+            ni[1] = i - 1
+            ci = 2
+        elif ps[k] == 1.0 and i + 1 < n_seg and seg_strand[i + 1] == seg_strand[i]:
+            ni[1] = i + 1
+            ci = 2
+        nj[0] = j
+        cj = 1
+        if pt[k] == 0.0 and j > 0 and seg_strand[j - 1] == seg_strand[j]:
+            nj[1] = j - 1
+            cj = 2
+        elif pt[k] == 1.0 and j + 1 < n_seg and seg_strand[j + 1] == seg_strand[j]:
+            nj[1] = j + 1
+            cj = 2
+        for x in range(ci):
+            for y in range(cj):
+                if x == 0 and y == 0:
+                    continue
+                a = min(ni[x], nj[y])
+                b = max(ni[x], nj[y])
+                if a == b:
+                    continue
+                other = a * n_seg + b
+                pos = np.searchsorted(keys, other)
+                if pos < m and keys[pos] == other:
+                    d_other = pd[pos]
+                    if d_other < pd[k] - tol or (d_other <= pd[k] + tol and other < keys[k]):
+                        keep[k] = False
+    return keep
+
+
+def close_segment_pairs_per_strand_reference(points, offsets, arc, radius, *,
+                                             min_self_arc: float | None = None) -> SegmentPairs:
+    """Close pairs with one radius per strand (or one for all), sorted by (i, j): the segment-level
+    reference's pairs at the largest radius whose distance is below r_a + r_b."""
+    points, offsets, arc = check_strands(points, offsets, arc)
+    radii = strand_radii(radius, len(offsets) - 1)
+    r_max = float(np.max(radii, initial=0.0))
+    min_self_arc = np.pi * r_max if min_self_arc is None else float(min_self_arc)
+    _, seg_strand = strand_segments(offsets)
+    ref = close_segment_pairs_reference(points, offsets, arc, r_max, min_self_arc=min_self_arc)
+    order = np.lexsort((ref.j, ref.i))
+    i, j, s, t, d = (getattr(ref, name)[order] for name in ("i", "j", "s", "t", "distance"))
+    keep = d < radii[seg_strand[i]] + radii[seg_strand[j]]
+    return SegmentPairs(i[keep], j[keep], s[keep], t[keep], d[keep], ref.n_candidates)
+
+
+def detect_strand_contacts_reference(points, offsets, arc, radius, *, min_self_arc: float | None = None,
+                                     merge_arc: float | None = None) -> Contacts:
+    """``detect_strand_contacts`` from the reference's sorted pairs (the pipeline before the unsorted
+    local minima): the same contacts, bit for bit."""
+    points, offsets, arc = check_strands(points, offsets, arc)
+    r_max = float(np.max(radius, initial=0.0)) if np.ndim(radius) else float(radius)
+    merge_arc = 4.0 * r_max if merge_arc is None else float(merge_arc)
+    pairs = close_segment_pairs_per_strand_reference(points, offsets, arc, radius, min_self_arc=min_self_arc)
+    seg_v0, seg_strand = strand_segments(offsets)
+    keep = _local_minima_searchsorted(pairs.i, pairs.j, pairs.s, pairs.t, pairs.distance, seg_strand, 1e-9 * r_max)
+    i, j, s, t, d = (x[keep] for x in (pairs.i, pairs.j, pairs.s, pairs.t, pairs.distance))
+    va, vb = seg_v0[i], seg_v0[j]
+    s_a = arc[va] + s * (arc[va + 1] - arc[va])
+    s_b = arc[vb] + t * (arc[vb + 1] - arc[vb])
+    strand_a, strand_b = seg_strand[i], seg_strand[j]
+    kept = merge_close(strand_a, strand_b, s_a, s_b, d, merge_arc)
+    kept = kept[np.lexsort((s_b[kept], strand_b[kept], s_a[kept], strand_a[kept]))]
+    strand_a, strand_b, s_a, s_b, s, t, d, va, vb = (
+        x[kept] for x in (strand_a, strand_b, s_a, s_b, s, t, d, va, vb))
+    dir_a = points[va + 1] - points[va]
+    dir_b = points[vb + 1] - points[vb]
+    point_a = points[va] + s[:, None] * dir_a
+    point_b = points[vb] + t[:, None] * dir_b
+    normal = pair_normals(point_a, point_b, dir_a, dir_b, d)
+    frame = contact_frames(normal, dir_a) if len(d) else np.zeros((0, 3, 3))
+    return Contacts(strand_a, s_a, strand_b, s_b, point_a, point_b, normal, frame, d, r_max)
 
 
 # ---------------------------------------------------------------- strand/head: every vertex queried

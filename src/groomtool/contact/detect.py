@@ -854,7 +854,7 @@ def _find_pairs(points, offsets, arc, radius, min_self_arc, cell_size):
             *args, *out, n_out, g_next, e_next, n_group_pairs, n_cand)
         if g_next >= len(first) - 1 and e_next >= len(keys):
             break
-        out = [np.concatenate([x[:n_out], np.empty(len(x), x.dtype)]) for x in out]
+        out = [np.concatenate([x[:n_out], np.empty(2 * len(x) - n_out, x.dtype)]) for x in out]
     _PAIRS_PER_SEGMENT[0] = 1.25 * n_out / len(seg_v0)
     return out, n_out, n_cand, n_group_pairs
 
