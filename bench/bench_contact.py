@@ -11,6 +11,13 @@ The ``-head`` rows time the strand/head pass alone, ``detect_head_contacts`` aga
 implementation ``detect_head_contacts_reference`` (tests/reference/contact.py; alternating, 3 times each,
 a fresh HeadSurface each time, built outside the timing), and check that both return the same contacts
 bit for bit.
+
+``--kernels [--commits A,B,...]`` times the detection kernels alone (CPU, best of ``--rounds``
+alternating rounds, every commit's ``src/groomtool`` extracted with ``git archive`` and run in its own
+process) on the workloads of ``kernel_workloads`` (the example grooms as the simulator samples them,
+with simulator-like per-strand thresholds, and harolongo's head pass), checks that every commit
+returns the same contacts, and writes its table into contact.md (section "Detection kernels") and
+contact.json ("kernels"); a full run keeps that section.
 """
 
 from __future__ import annotations
@@ -205,6 +212,173 @@ def run_in_child(spec: dict, data: Path) -> dict:
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
+# ----------------------------------------------------------------------------- kernel timings
+KERNELS = (("detect", "_close_pairs_kernel"), ("detect", "_local_minima_kernel"), ("detect", "_local_minima_unsorted"),
+           ("detect", "_sorted_pairs"), ("head", "_strand_bounds_kernel"), ("head", "_head_minima_bounded_kernel"))
+
+
+def kernel_workloads(data: Path) -> dict:
+    """name -> (kind, points, offsets, arc, radius, kwargs, head mesh): the example grooms (README: 200
+    strands; 1,000) fitted and sampled as the simulator samples them (8 points per element), with the
+    simulator's kind of thresholds (r_c = 0.5 mm plus per-strand margins and half the skin: 1.05 to 3
+    r_c for strand/strand, 1 to 4 r_c for the head) and the inversion's (r_c = 0.5 mm); harolongo as
+    ``groom invert`` samples it, head pass at 50 um."""
+    from groomtool.examples import example_groom
+    from groomtool.fit import fit_groom
+    from groomtool.invert import InversionParams
+    from groomtool.rods import superhelix as sh
+
+    out = {}
+    rc = 5e-4
+    for n in (200, 1000):
+        groom, mesh = example_groom(n)
+        helix = fit_groom(groom, tolerance=InversionParams().tolerance).helix
+        pts, off, _, arc = sh.sample(helix, 8)
+        rng = np.random.default_rng(0)
+        rs = rc * rng.uniform(1.05, 3.0, n)
+        rh = rc * rng.uniform(1.0, 4.0, n)
+        out[f"example{n}-sim-strand"] = ("strand", pts, off, arc, rs, dict(min_self_arc=np.pi * rs.max(),
+                                                                          merge_arc=4 * rs.max()), None)
+        out[f"example{n}-sim-head"] = ("head", pts, off, arc, rh, dict(min_root_arc=np.pi * rh.max(),
+                                                                      merge_arc=4 * rh.max()), mesh)
+        out[f"example{n}@0.5mm-strand"] = ("strand", pts, off, arc, rc, {}, None)
+    if (data / HAROLONGO[0]).is_file():
+        pts, off, arc = fitted_samples(data)
+        out["harolongo_fitted@50um-head"] = ("head", pts, off, arc, 5e-5, {},
+                                             load_mesh(data / HAROLONGO[1], HAROLONGO[2]))
+    return out
+
+
+def run_kernel_row(data: Path, cache: Path) -> dict:
+    """Time the kernels of the groomtool on the path (best of 3 calls after a warm one) on every workload;
+    the workloads are built once and kept in ``cache`` (an .npz per workload, shared by the commits)."""
+    import pickle
+
+    import groomtool
+    from groomtool.contact import HeadSurface, detect_head_contacts, detect_strand_contacts
+    from groomtool.contact import detect as det
+    from groomtool.contact import head as hd
+
+    if cache.is_file():
+        work = pickle.loads(cache.read_bytes())
+    else:
+        work = kernel_workloads(data)
+        cache.write_bytes(pickle.dumps(work))
+    acc: dict = {}
+    for mod_name, name in KERNELS:
+        mod = det if mod_name == "detect" else hd
+        fn = getattr(mod, name, None)
+        if fn is None:
+            continue
+
+        def timed(*a, _fn=fn, _name=name):
+            t = time.process_time()
+            r = _fn(*a)
+            acc[_name] = acc.get(_name, 0.0) + time.process_time() - t
+            return r
+        setattr(mod, name, timed)
+    rows = {}
+    for label, (kind, pts, off, arc, radius, kw, mesh) in work.items():
+        surface = HeadSurface(mesh) if mesh is not None else None
+        best: dict = {}
+        for rep in range(4):
+            acc.clear()
+            t = time.process_time()
+            if kind == "strand":
+                c = detect_strand_contacts(pts, off, arc, radius, **kw)
+            else:
+                c = detect_head_contacts(pts, off, arc, surface, radius, **kw)
+            total = time.process_time() - t
+            if rep == 0:  # warm (numba cache, capacity estimate)
+                digest = [float(np.sum(np.nan_to_num(getattr(c, f)))) for f in ("s_a", "s_b", "distance")]
+                n = len(c)
+                continue
+            for k, v in {**acc, "total": total}.items():
+                best[k] = min(best.get(k, np.inf), v)
+        rows[label] = {"cpu_s": best, "contacts": n, "digest": digest}
+    return {"groomtool": str(Path(groomtool.__file__).parent), "rows": rows}
+
+
+def kernels_main(args) -> None:
+    import tempfile
+
+    commits = args.commits.split(",")
+    tmp = Path(tempfile.mkdtemp(prefix="bench_kernels_"))
+    cache = tmp / "workloads.pkl"
+    trees = {}
+    for c in commits:
+        trees[c] = tmp / c.replace("/", "_")
+        trees[c].mkdir()
+        archive = subprocess.run(["git", "-C", str(REPO), "archive", c, "src/groomtool"], capture_output=True, check=True)
+        subprocess.run(["tar", "-x", "-C", str(trees[c])], input=archive.stdout, check=True)
+        subprocess.run(["git", "-C", str(REPO), "rev-parse", "--short", c], capture_output=True, text=True)
+    results: dict = {c: [] for c in commits}
+    for rnd in range(args.rounds):
+        for c in commits:
+            env = {**os.environ, "NUMBA_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1",
+                   "PYTHONPATH": str(trees[c] / "src")}
+            out = subprocess.run([sys.executable, __file__, "--data", str(args.data), "--kernel-row", str(cache)],
+                                 capture_output=True, text=True, check=True, env=env)
+            results[c].append(json.loads(out.stdout.strip().splitlines()[-1]))
+            print(f"round {rnd + 1} {c} done", flush=True)
+    labels = list(results[commits[0]][0]["rows"])
+    table = {}
+    for c in commits:
+        table[c] = {}
+        for label in labels:
+            per = [r["rows"][label] for r in results[c]]
+            keys = set().union(*(p["cpu_s"] for p in per))
+            table[c][label] = {"cpu_ms": {k: 1e3 * min(p["cpu_s"].get(k, np.inf) for p in per) for k in keys},
+                               "contacts": per[0]["contacts"], "digest": per[0]["digest"]}
+    same = {label: all(table[c][label]["digest"] == table[commits[0]][label]["digest"]
+                       and table[c][label]["contacts"] == table[commits[0]][label]["contacts"] for c in commits)
+            for label in labels}
+    shas = {c: subprocess.run(["git", "-C", str(REPO), "rev-parse", "--short", c], capture_output=True,
+                              text=True).stdout.strip() for c in commits}
+    lines = ["# Contact detection kernels, before/after", "",
+             f"`bench/bench_contact.py --kernels --commits {args.commits}`: CPU ms per call (best of {args.rounds} "
+             "alternating rounds x 3 calls, one process per commit and round, NUMBA_NUM_THREADS=1, "
+             f"load average at the end {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores). Same contacts: "
+             "count and sums of s_a, s_b, distance equal for every commit (the tests check every field).", ""]
+    cols = ["_close_pairs_kernel", "_local_minima_kernel", "_local_minima_unsorted", "_sorted_pairs",
+            "_strand_bounds_kernel", "_head_minima_bounded_kernel", "total"]
+    lines.append("| workload | commit | contacts | " + " | ".join(c.strip("_") for c in cols) + " |")
+    lines.append("|---|---|---:|" + "---:|" * len(cols))
+    for label in labels:
+        for c in commits:
+            row = table[c][label]
+            vals = [f"{row['cpu_ms'][k]:.1f}" if k in row["cpu_ms"] else "" for k in cols]
+            lines.append(f"| {label} | {shas[c]} | {row['contacts']:,} | " + " | ".join(vals) + " |")
+    lines += ["", "Same contacts on every workload: " + ("yes" if all(same.values()) else f"NO: {same}")]
+    merge_kernel_section(args.out, lines, {"commits": shas, "table": table, "same": same, "raw": results})
+    print("\n".join(lines))
+
+
+KERNEL_SECTION = "## Detection kernels, before/after"
+
+
+def kernel_section(md: str) -> str:
+    """The kernels section of a contact.md text ('' if none)."""
+    if KERNEL_SECTION not in md:
+        return ""
+    rest = md[md.index(KERNEL_SECTION):]
+    end = rest.find("\n## ", 1)
+    return rest if end < 0 else rest[:end + 1]
+
+
+def merge_kernel_section(out: Path, lines: list, data: dict) -> None:
+    """Put the kernel table into contact.md (replacing its section) and contact.json ("kernels")."""
+    md_path, json_path = out / "contact.md", out / "contact.json"
+    md = md_path.read_text() if md_path.is_file() else "# Contact detection benchmark\n"
+    section = "\n".join([KERNEL_SECTION] + lines[1:]) + "\n"
+    old = kernel_section(md)
+    md = md.replace(old, section) if old else md.rstrip("\n") + "\n\n" + section
+    md_path.write_text(md)
+    js = json.loads(json_path.read_text()) if json_path.is_file() else {}
+    js["kernels"] = data
+    json_path.write_text(json.dumps(js, indent=1, default=float))
+
+
 # ------------------------------------------------------------------------ head query comparison
 def head_query_comparison(data: Path, n_points: int = 20000) -> dict:
     """Own BVH signed distance vs trimesh.proximity.closest_point on harolongo vertices near the head."""
@@ -330,7 +504,17 @@ def main() -> None:
     ap.add_argument("--quick", action="store_true", help="default radius only, no distance study")
     ap.add_argument("--rows", help="re-run only these row labels (comma-separated) and merge them into contact.json")
     ap.add_argument("--row", help=argparse.SUPPRESS)
+    ap.add_argument("--kernels", action="store_true", help="time the detection kernels of --commits (before/after)")
+    ap.add_argument("--commits", default="HEAD", help="commits to compare with --kernels (comma-separated)")
+    ap.add_argument("--rounds", type=int, default=2, help="alternating rounds of --kernels")
+    ap.add_argument("--kernel-row", type=Path, help=argparse.SUPPRESS)
     args = ap.parse_args()
+    if args.kernel_row:
+        print(json.dumps(run_kernel_row(args.data, args.kernel_row), default=float))
+        return
+    if args.kernels:
+        kernels_main(args)
+        return
     if args.row:
         spec = json.loads(args.row)
         print(json.dumps(run_head_row(spec, args.data) if spec.get("head_only") else run_row(spec, args.data)))
@@ -385,8 +569,12 @@ def main() -> None:
            "load_average_at_end": os.getloadavg(), "numba_threads": 1}
 
     args.out.mkdir(parents=True, exist_ok=True)
+    old_json = json.loads((args.out / "contact.json").read_text()) if (args.out / "contact.json").is_file() else {}
+    old_kernels = kernel_section((args.out / "contact.md").read_text()) if (args.out / "contact.md").is_file() else ""
     (args.out / "contact.json").write_text(json.dumps({"rows": rows, "head_query": comparison,
-                                                        "distance_study": study, "environment": env}, indent=1))
+                                                        "distance_study": study, "environment": env,
+                                                        **({"kernels": old_json["kernels"]} if "kernels" in old_json
+                                                           else {})}, indent=1))
     md = ["# Contact detection benchmark", "",
           "Generated by `bench/bench_contact.py` (one core: NUMBA_NUM_THREADS=1; each row in its own process; "
           "numba functions already compiled and cached). Stage columns are wall seconds. "
@@ -433,7 +621,7 @@ def main() -> None:
                    f"{list(s['strand_min_head_distance_mm_percentiles'].values())}",
                    "- strands coming within X mm of the head (beyond the first cm): "
                    + ", ".join(f"{x} mm: {100 * f:.0f} %" for x, f in s["strands_within_head_mm"].items()), ""]
-    (args.out / "contact.md").write_text("\n".join(md) + "\n")
+    (args.out / "contact.md").write_text("\n".join(md) + "\n" + ("\n" + old_kernels if old_kernels else ""))
     print()
     print(table([r for r in rows if not r.get("head_only")]))
     print(head_table([r for r in rows if r.get("head_only")]))
