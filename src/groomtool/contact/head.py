@@ -264,7 +264,7 @@ def as_head_surface(head) -> HeadSurface:
 
 
 # ------------------------------------------------------------------------------------ queries
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True)
 def _closest_on_triangle(px, py, pz, tri, f):
     """Closest point of triangle ``tri[f]`` (a, b, c flattened) to p (Ericson 5.1.5) and its feature code."""
     ax, ay, az = tri[f, 0], tri[f, 1], tri[f, 2]
@@ -305,7 +305,7 @@ def _closest_on_triangle(px, py, pz, tri, f):
     return ax + abx * v + acx * w, ay + aby * v + acy * w, az + abz * v + acz * w, _FACE
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True)
 def _axis_gap2(p, lo, hi):
     if p < lo:
         return (lo - p) * (lo - p)
@@ -314,7 +314,7 @@ def _axis_gap2(p, lo, hi):
     return 0.0
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True)
 def _box_dist2(box, node, px, py, pz):
     return (_axis_gap2(px, box[node, 0], box[node, 3]) + _axis_gap2(py, box[node, 1], box[node, 4])
             + _axis_gap2(pz, box[node, 2], box[node, 5]))
@@ -400,7 +400,7 @@ def _query_kernel(points, bvh):
 
 
 # ------------------------------------------------------------------------------- head contacts
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True)
 def _box_gap2(box, i, px, py, pz):
     """``_box_dist2`` without branches (the same value)."""
     gx = max(box[i, 0] - px, px - box[i, 3], 0.0)
@@ -409,22 +409,13 @@ def _box_gap2(box, i, px, py, pz):
     return gx * gx + gy * gy + gz * gz
 
 
-# The fast queries below take the BVH's arrays one by one and the traversal stacks from their caller
-# (``_stacks``), and are inlined into the kernels: a call of a compiled function with arrays (or a
-# tuple of them unpacked) costs reference counting, and a stack allocated per query a malloc; both
-# were a third of the head pass.  The wrappers ``_signed_fast``, ``_signed_among`` and
-# ``_segment_candidates`` (BVH tuple, own stacks) run the same code, for the tests.
-@nb.njit(cache=True, inline="always")
-def _stacks():
-    """Traversal stacks (nodes, squared distances) of ``_nearest_core`` and ``_candidates_core``."""
-    return np.empty(64, np.int64), np.empty(64)
-
-
-@nb.njit(cache=True, inline="always")
-def _nearest_core(px, py, pz, box, child, span, tri, tri_box, best, stack, stack_d):
+@nb.njit(cache=True)
+def _nearest_fast(px, py, pz, box, child, span, tri, tri_box, best):
     """``_nearest`` with a triangle's own box tested before its closest point (skipped when clearly
     farther than the best so far, so no triangle that ``_nearest`` would take is skipped): the same
     traversal order, the same triangles accepted, the same result."""
+    stack = np.empty(64, np.int64)
+    stack_d = np.empty(64)
     stack[0] = 0
     stack_d[0] = 0.0
     sp = 1
@@ -462,7 +453,7 @@ def _nearest_core(px, py, pz, box, child, span, tri, tri_box, best, stack, stack
     return best, bx, by, bz, bf, bfeat
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True)
 def _face_sign(px, py, pz, cx, cy, cz, f, feat, normals, rim):
     """``_signed_point``'s sign for p whose closest point is c, on feature ``feat`` of face slot f."""
     if not rim[f, feat] and ((px - cx) * normals[f, feat, 0] + (py - cy) * normals[f, feat, 1]
@@ -471,36 +462,29 @@ def _face_sign(px, py, pz, cx, cy, cz, f, feat, normals, rim):
     return 1.0
 
 
-@nb.njit(cache=True, inline="always")
-def _signed_core(px, py, pz, box, child, span, tri, normals, rim, tri_box, bound, stack, stack_d):
-    """The signed distance of ``_signed_point`` (``_nearest_core`` instead of ``_nearest``).  Its
+@nb.njit(cache=True)
+def _signed_fast(px, py, pz, bvh, tri_box, bound):
+    """The signed distance of ``_signed_point`` (``_nearest_fast`` instead of ``_nearest``).  Its
     result does not depend on ``bound`` (an upper bound of the distance, or inf): a triangle holding
     the minimum is never pruned (its boxes are no farther than it), so the search ends with the
     same triangle, the first in the tree's order that reaches the minimum."""
+    box, child, span, tri, normals, rim = bvh
     best = np.inf if bound == np.inf else (bound * (1.0 + 1e-9) + 1e-300) ** 2
-    d2, bx, by, bz, bf, bfeat = _nearest_core(px, py, pz, box, child, span, tri, tri_box, best, stack, stack_d)
+    d2, bx, by, bz, bf, bfeat = _nearest_fast(px, py, pz, box, child, span, tri, tri_box, best)
     if bf < 0:  # the bound was too tight (rounding): search again without it
-        d2, bx, by, bz, bf, bfeat = _nearest_core(px, py, pz, box, child, span, tri, tri_box, np.inf, stack,
-                                                  stack_d)
+        d2, bx, by, bz, bf, bfeat = _nearest_fast(px, py, pz, box, child, span, tri, tri_box, np.inf)
     return _face_sign(px, py, pz, bx, by, bz, bf, bfeat, normals, rim) * np.sqrt(d2)
 
 
 @nb.njit(cache=True)
-def _signed_fast(px, py, pz, bvh, tri_box, bound):
-    """``_signed_core`` on a BVH tuple (``HeadSurface._bvh``)."""
-    box, child, span, tri, normals, rim = bvh
-    stack, stack_d = _stacks()
-    return _signed_core(px, py, pz, box, child, span, tri, normals, rim, tri_box, bound, stack, stack_d)
-
-
-@nb.njit(cache=True, inline="always")
-def _candidates_core(p0, p1, p2, q0, q1, q2, reach, box, child, span, tri_box, out, stack):
-    """Face slots whose box is within ``reach`` of the box of segment pq, written to ``out`` as far as
-    it holds them: every face that can be closest to a point x of the segment whose distance is at
-    most ``reach``.  Returns their count (larger than ``out`` when it was too small)."""
-    lo0, lo1, lo2 = min(p0, q0), min(p1, q1), min(p2, q2)
-    hi0, hi1, hi2 = max(p0, q0), max(p1, q1), max(p2, q2)
+def _segment_candidates(p, q, reach, box, child, span, tri_box, out):
+    """Face slots whose box is within ``reach`` of the box of segment pq (written to ``out``, grown
+    as needed): every face that can be closest to a point x of the segment whose distance is at most
+    ``reach``.  Returns (out, count)."""
+    lo0, lo1, lo2 = min(p[0], q[0]), min(p[1], q[1]), min(p[2], q[2])
+    hi0, hi1, hi2 = max(p[0], q[0]), max(p[1], q[1]), max(p[2], q[2])
     lim = reach * reach * (1.0 + 1e-9) + 1e-20
+    stack = np.empty(64, np.int64)
     stack[0] = 0
     sp = 1
     n = 0
@@ -523,171 +507,84 @@ def _candidates_core(p0, p1, p2, q0, q1, q2, reach, box, child, span, tri_box, o
             gz = max(tri_box[f, 2] - hi2, lo2 - tri_box[f, 5], 0.0)
             if gx * gx + gy * gy + gz * gz > lim:
                 continue
-            if n < out.shape[0]:
-                out[n] = f
+            if n == out.shape[0]:
+                out = np.concatenate((out, np.empty(n, np.int64)))
+            out[n] = f
             n += 1
-    return n
-
-
-@nb.njit(cache=True)
-def _segment_candidates(p, q, reach, box, child, span, tri_box, out):
-    """``_candidates_core`` for segment pq (arrays of 3), ``out`` grown as needed.  Returns (out, count)."""
-    stack = np.empty(64, np.int64)
-    n = _candidates_core(p[0], p[1], p[2], q[0], q[1], q[2], reach, box, child, span, tri_box, out, stack)
-    if n > out.shape[0]:
-        out = np.empty(2 * n, np.int64)
-        n = _candidates_core(p[0], p[1], p[2], q[0], q[1], q[2], reach, box, child, span, tri_box, out, stack)
     return out, n
-
-
-@nb.njit(cache=True, inline="always")
-def _among_core(px, py, pz, box, child, span, tri, normals, rim, tri_box, bound, cand, n_cand, stack, stack_d):
-    """``_signed_point``'s signed distance when the closest face is among ``cand[:n_cand]`` (it is
-    when every face within ``bound`` of p is there): the smallest squared distance is the same
-    whatever the order the faces are tried in; the search keeps the first face reaching it, which
-    only matters for the sign when several faces tie exactly, so then (if their signs differ) the
-    point is queried again with ``_signed_core``, in the tree's order.
-
-    Returns (signed distance, position in ``cand`` of the face reaching it, or -1 after a tree
-    search)."""
-    best = np.inf if bound == np.inf else (bound * (1.0 + 1e-9) + 1e-300) ** 2
-    bx = by = bz = 0.0
-    bf = -1
-    bi = -1
-    bfeat = 0
-    conflict = False
-    for i in range(n_cand):
-        f = cand[i]
-        if _box_gap2(tri_box, f, px, py, pz) > best * (1.0 + 1e-9) + 1e-20:
-            continue
-        cx, cy, cz, feat = _closest_on_triangle(px, py, pz, tri, f)
-        d2 = (px - cx) * (px - cx) + (py - cy) * (py - cy) + (pz - cz) * (pz - cz)
-        if d2 < best:
-            best, bx, by, bz, bf, bi, bfeat = d2, cx, cy, cz, f, i, feat
-            conflict = False
-        elif d2 == best and bf >= 0 and not conflict:
-            conflict = (_face_sign(px, py, pz, cx, cy, cz, f, feat, normals, rim)
-                        != _face_sign(px, py, pz, bx, by, bz, bf, bfeat, normals, rim))
-    if bf < 0 or conflict:
-        return _signed_core(px, py, pz, box, child, span, tri, normals, rim, tri_box, bound, stack, stack_d), -1
-    return _face_sign(px, py, pz, bx, by, bz, bf, bfeat, normals, rim) * np.sqrt(best), bi
-
-
-@nb.njit(cache=True, inline="always")
-def _among_seg(x, p0, p1, p2, q0, q1, q2, length, box, child, span, tri, normals, rim, tri_box, bound, cand, cdist,
-               cpos, n_cand, slack, stack, stack_d):
-    """``_among_core`` at the point x of segment pq (``length`` its length), remembering each face's
-    distance: ``cdist[i]`` (< 0: none yet) is the distance of face ``cand[i]`` from the point at
-    ``cpos[i]``, so the face is at least cdist[i] - |x - cpos[i]| length from this point (1-Lipschitz);
-    a face whose bound, less ``slack`` (far above rounding), clearly exceeds the best distance so far
-    cannot reach nor tie it and is skipped.  The face reaching the minimum is then moved to the front
-    (the next point of the search is near, its face likely the same: tried first it lets the bounds
-    skip the others).  Neither changes the value: the order of the faces does not, and the skipped
-    faces are farther than the minimum.  Returns the signed distance of the point
-    p + x (q - p), computed as the reference computes it."""
-    px, py, pz = p0 + x * (q0 - p0), p1 + x * (q1 - p1), p2 + x * (q2 - p2)
-    best = np.inf if bound == np.inf else (bound * (1.0 + 1e-9) + 1e-300) ** 2
-    bx = by = bz = 0.0
-    bf = -1
-    bi = -1
-    bfeat = 0
-    conflict = False
-    for i in range(n_cand):
-        if cdist[i] >= 0.0:
-            lb = cdist[i] - abs(x - cpos[i]) * length * (1.0 + 1e-12) - slack
-            if lb > 0.0 and lb * lb > best * (1.0 + 1e-6):
-                continue
-        f = cand[i]
-        if _box_gap2(tri_box, f, px, py, pz) > best * (1.0 + 1e-9) + 1e-20:
-            continue
-        cx, cy, cz, feat = _closest_on_triangle(px, py, pz, tri, f)
-        d2 = (px - cx) * (px - cx) + (py - cy) * (py - cy) + (pz - cz) * (pz - cz)
-        cdist[i] = np.sqrt(d2)
-        cpos[i] = x
-        if d2 < best:
-            best, bx, by, bz, bf, bi, bfeat = d2, cx, cy, cz, f, i, feat
-            conflict = False
-        elif d2 == best and bf >= 0 and not conflict:
-            conflict = (_face_sign(px, py, pz, cx, cy, cz, f, feat, normals, rim)
-                        != _face_sign(px, py, pz, bx, by, bz, bf, bfeat, normals, rim))
-    if bf < 0 or conflict:
-        return _signed_core(px, py, pz, box, child, span, tri, normals, rim, tri_box, bound, stack, stack_d)
-    if bi > 0:
-        cand[bi], cand[0] = cand[0], cand[bi]
-        cdist[bi], cdist[0] = cdist[0], cdist[bi]
-        cpos[bi], cpos[0] = cpos[0], cpos[bi]
-    return _face_sign(px, py, pz, bx, by, bz, bf, bfeat, normals, rim) * np.sqrt(best)
 
 
 @nb.njit(cache=True)
 def _signed_among(px, py, pz, bvh, tri_box, bound, cand, n_cand):
-    """``_among_core``'s signed distance on a BVH tuple."""
+    """``_signed_point``'s signed distance when the closest face is among ``cand[:n_cand]`` (it is
+    when every face within ``bound`` of p is there): the smallest squared distance is the same
+    whatever the order the faces are tried in; the search keeps the first face reaching it, which
+    only matters for the sign when several faces tie exactly, so then (if their signs differ) the
+    point is queried again with ``_signed_fast``, in the tree's order."""
     box, child, span, tri, normals, rim = bvh
-    stack, stack_d = _stacks()
-    return _among_core(px, py, pz, box, child, span, tri, normals, rim, tri_box, bound, cand, n_cand, stack,
-                       stack_d)[0]
-
-
-@nb.njit(cache=True, inline="always")
-def _golden_core(p0, p1, p2, q0, q1, q2, dp, dq, t_lo, length, box, child, span, tri, normals, rim, tri_box, tol,
-                 cand, cdist, cpos, n, slack, stack, stack_d):
-    """The golden-section search of the reference (``_golden_on_segment``, tests/reference/contact.py)
-    on segment pq (``length`` its length) with every evaluation searched among the faces ``cand[:n]``
-    near the segment (``_candidates_core``, reach: the largest distance bound of the evaluations;
-    ``_among_seg``): the same evaluations, values and result.  Returns (t, distance)."""
-    for i in range(n):
-        cdist[i] = -1.0
-    lo, hi = t_lo, 1.0
-    x1 = hi - _GOLDEN * (hi - lo)
-    x2 = lo + _GOLDEN * (hi - lo)
-    f1 = _among_seg(x1, p0, p1, p2, q0, q1, q2, length, box, child, span, tri, normals, rim, tri_box,
-                    min(abs(dp) + x1 * length, abs(dq) + (1.0 - x1) * length), cand, cdist, cpos, n, slack, stack,
-                    stack_d)
-    f2 = _among_seg(x2, p0, p1, p2, q0, q1, q2, length, box, child, span, tri, normals, rim, tri_box,
-                    min(abs(dp) + x2 * length, abs(dq) + (1.0 - x2) * length), cand, cdist, cpos, n, slack, stack,
-                    stack_d)
-    while hi - lo > tol:
-        if f1 <= f2:
-            hi, x2, f2 = x2, x1, f1
-            x1 = hi - _GOLDEN * (hi - lo)
-            f1 = _among_seg(x1, p0, p1, p2, q0, q1, q2, length, box, child, span, tri, normals, rim, tri_box,
-                            min(abs(dp) + x1 * length, abs(dq) + (1.0 - x1) * length), cand, cdist, cpos, n, slack,
-                            stack, stack_d)
-        else:
-            lo, x1, f1 = x1, x2, f2
-            x2 = lo + _GOLDEN * (hi - lo)
-            f2 = _among_seg(x2, p0, p1, p2, q0, q1, q2, length, box, child, span, tri, normals, rim, tri_box,
-                            min(abs(dp) + x2 * length, abs(dq) + (1.0 - x2) * length), cand, cdist, cpos, n, slack,
-                            stack, stack_d)
-    if f1 <= f2:
-        return x1, f1
-    return x2, f2
+    best = np.inf if bound == np.inf else (bound * (1.0 + 1e-9) + 1e-300) ** 2
+    bx = by = bz = 0.0
+    bf = -1
+    bfeat = 0
+    conflict = False
+    for i in range(n_cand):
+        f = cand[i]
+        if _box_gap2(tri_box, f, px, py, pz) > best * (1.0 + 1e-9) + 1e-20:
+            continue
+        cx, cy, cz, feat = _closest_on_triangle(px, py, pz, tri, f)
+        d2 = (px - cx) * (px - cx) + (py - cy) * (py - cy) + (pz - cz) * (pz - cz)
+        if d2 < best:
+            best, bx, by, bz, bf, bfeat = d2, cx, cy, cz, f, feat
+            conflict = False
+        elif d2 == best and bf >= 0 and not conflict:
+            conflict = (_face_sign(px, py, pz, cx, cy, cz, f, feat, normals, rim)
+                        != _face_sign(px, py, pz, bx, by, bz, bf, bfeat, normals, rim))
+    if bf < 0 or conflict:
+        return _signed_fast(px, py, pz, bvh, tri_box, bound)
+    return _face_sign(px, py, pz, bx, by, bz, bf, bfeat, normals, rim) * np.sqrt(best)
 
 
 @nb.njit(cache=True)
 def _golden_cand(p, q, dp, dq, t_lo, bvh, tri_box, tol, cand):
-    """``_golden_core`` on segment pq (arrays of 3) and a BVH tuple, its faces collected here (``cand``
-    grown as needed).  Returns (t, distance, cand)."""
+    """The golden-section search of the reference (``_golden_on_segment``, tests/reference/contact.py)
+    with every evaluation searched among the faces near the segment (``_segment_candidates``, reach:
+    the largest distance bound of the evaluations): the same evaluations, values and result.  Returns
+    (t, distance, cand)."""
     box, child, span, tri, normals, rim = bvh
-    stack, stack_d = _stacks()
     length = np.sqrt((q[0] - p[0]) ** 2 + (q[1] - p[1]) ** 2 + (q[2] - p[2]) ** 2)
     reach = 0.5 * (abs(dp) + abs(dq) + length)  # >= min(|dp| + x l, |dq| + (1 - x) l) for every x
     cand, n = _segment_candidates(p, q, reach, box, child, span, tri_box, cand)
-    cdist, cpos = np.empty(n), np.empty(n)
-    slack = 1e-9 * (1.0 + abs(p[0]) + abs(p[1]) + abs(p[2]) + length)
-    t, d = _golden_core(p[0], p[1], p[2], q[0], q[1], q[2], dp, dq, t_lo, length, box, child, span, tri, normals,
-                        rim, tri_box, tol, cand, cdist, cpos, n, slack, stack, stack_d)
-    return t, d, cand
+    lo, hi = t_lo, 1.0
+    x1 = hi - _GOLDEN * (hi - lo)
+    x2 = lo + _GOLDEN * (hi - lo)
+    f1 = _signed_among(p[0] + x1 * (q[0] - p[0]), p[1] + x1 * (q[1] - p[1]), p[2] + x1 * (q[2] - p[2]), bvh,
+                       tri_box, min(abs(dp) + x1 * length, abs(dq) + (1.0 - x1) * length), cand, n)
+    f2 = _signed_among(p[0] + x2 * (q[0] - p[0]), p[1] + x2 * (q[1] - p[1]), p[2] + x2 * (q[2] - p[2]), bvh,
+                       tri_box, min(abs(dp) + x2 * length, abs(dq) + (1.0 - x2) * length), cand, n)
+    while hi - lo > tol:
+        if f1 <= f2:
+            hi, x2, f2 = x2, x1, f1
+            x1 = hi - _GOLDEN * (hi - lo)
+            f1 = _signed_among(p[0] + x1 * (q[0] - p[0]), p[1] + x1 * (q[1] - p[1]), p[2] + x1 * (q[2] - p[2]),
+                               bvh, tri_box, min(abs(dp) + x1 * length, abs(dq) + (1.0 - x1) * length), cand, n)
+        else:
+            lo, x1, f1 = x1, x2, f2
+            x2 = lo + _GOLDEN * (hi - lo)
+            f2 = _signed_among(p[0] + x2 * (q[0] - p[0]), p[1] + x2 * (q[1] - p[1]), p[2] + x2 * (q[2] - p[2]),
+                               bvh, tri_box, min(abs(dp) + x2 * length, abs(dq) + (1.0 - x2) * length), cand, n)
+    if f1 <= f2:
+        return x1, f1, cand
+    return x2, f2, cand
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True)
 def _seg_len(points, i, j):
     """|points[j] - points[i]| (the same rounding as the side bounds of the reference's ``_head_minima_kernel``)."""
     return np.sqrt((points[j, 0] - points[i, 0]) ** 2 + (points[j, 1] - points[i, 1]) ** 2
                    + (points[j, 2] - points[i, 2]) ** 2)
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True)
 def _guard_dist2(px, py, pz, guard):
     """Squared distance from p to the nearest guard box (rows of ``_sign_propagation``); inf if none."""
     best = np.inf
@@ -702,7 +599,7 @@ def _guard_dist2(px, py, pz, guard):
     return best
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True)
 def _never_refined(q, radius, s_prev, s_next, has_prev, has_next):
     """True when a vertex whose signed distance is at least ``q`` is no candidate of the
     reference's ``_head_minima_kernel`` whatever its neighbours: a candidate is a discrete local minimum (no
@@ -740,8 +637,6 @@ def _strand_bounds_kernel(points, offsets, in_box, bvh, tri_box, radii, max_seg,
     hole's guard box than the upper bound (``_sign_propagation``).  Returns (value, exact flag,
     exact queries, bounded vertices).  radii: the contact radius of each strand.
     """
-    box, child, span, tri, normals, rim = bvh
-    stack, stack_d = _stacks()
     n = points.shape[0]
     val = np.full(n, np.inf)
     exact = np.ones(n, np.bool_)
@@ -774,8 +669,7 @@ def _strand_bounds_kernel(points, offsets, in_box, bvh, tri_box, radii, max_seg,
                     exact[k] = False
                     n_bounded += 1
                     continue
-            d = _signed_core(px, py, pz, box, child, span, tri, normals, rim, tri_box,
-                             np.inf if ua < 0.0 else ua + run, stack, stack_d)
+            d = _signed_fast(px, py, pz, bvh, tri_box, np.inf if ua < 0.0 else ua + run)
             val[k] = d
             n_exact += 1
             ua, run = abs(d), 0.0
@@ -787,35 +681,14 @@ def _strand_bounds_kernel(points, offsets, in_box, bvh, tri_box, radii, max_seg,
     return val, exact, n_exact, n_bounded
 
 
-@nb.njit(cache=True, inline="always")
-def _make_exact(points, k, val, exact, box, child, span, tri, normals, rim, tri_box, stack, stack_d):
+@nb.njit(cache=True)
+def _make_exact(points, k, val, exact, bvh, tri_box):
     """Replace a lower bound by the signed distance; returns 1 if that took a query."""
     if exact[k]:
         return 0
-    val[k] = _signed_core(points[k, 0], points[k, 1], points[k, 2], box, child, span, tri, normals, rim, tri_box,
-                          np.inf, stack, stack_d)
+    val[k] = _signed_fast(points[k, 0], points[k, 1], points[k, 2], bvh, tri_box, np.inf)
     exact[k] = True
     return 1
-
-
-@nb.njit(cache=True, inline="always")
-def _refine_segment(points, v, dp, dq, t_lo, box, child, span, tri, normals, rim, tri_box, tol, cand, cdist, cpos,
-                    stack, stack_d):
-    """``_golden_cand`` on segment (v, v + 1) of ``points`` (distances dp, dq at its ends), the BVH's
-    arrays one by one and ``cand`` (with ``cdist``, ``cpos`` of the same size) grown only when too
-    small.  Returns (t, distance, cand, cdist, cpos)."""
-    p0, p1, p2 = points[v, 0], points[v, 1], points[v, 2]
-    q0, q1, q2 = points[v + 1, 0], points[v + 1, 1], points[v + 1, 2]
-    length = np.sqrt((q0 - p0) ** 2 + (q1 - p1) ** 2 + (q2 - p2) ** 2)
-    reach = 0.5 * (abs(dp) + abs(dq) + length)  # >= min(|dp| + x l, |dq| + (1 - x) l) for every x
-    n = _candidates_core(p0, p1, p2, q0, q1, q2, reach, box, child, span, tri_box, cand, stack)
-    if n > cand.shape[0]:
-        cand, cdist, cpos = np.empty(2 * n, np.int64), np.empty(2 * n), np.empty(2 * n)
-        n = _candidates_core(p0, p1, p2, q0, q1, q2, reach, box, child, span, tri_box, cand, stack)
-    slack = 1e-9 * (1.0 + abs(p0) + abs(p1) + abs(p2) + length)  # far above the rounding of the distances
-    t, d = _golden_core(p0, p1, p2, q0, q1, q2, dp, dq, t_lo, length, box, child, span, tri, normals, rim, tri_box,
-                        tol, cand, cdist, cpos, n, slack, stack, stack_d)
-    return t, d, cand, cdist, cpos
 
 
 @nb.njit(cache=True)
@@ -833,10 +706,7 @@ def _head_minima_bounded_kernel(points, arc, offsets, val, exact, bvh, tri_box, 
     n_out = 0
     n_refined = 0
     n_late = 0
-    cand = np.empty(256, np.int64)  # candidate faces of a refined segment (``_refine_segment``)
-    cdist, cpos = np.empty(256), np.empty(256)  # their last distance and where
-    box, child, span, tri, normals, rim = bvh
-    stack, stack_d = _stacks()
+    cand = np.empty(256, np.int64)  # candidate faces of a refined segment (``_golden_cand``)
     for st in range(offsets.shape[0] - 1):
         v_first, v_last = offsets[st], offsets[st + 1] - 1
         if v_last <= v_first:  # a strand without segments has no contact
@@ -852,56 +722,48 @@ def _head_minima_bounded_kernel(points, arc, offsets, val, exact, bvh, tri_box, 
             s_next = _seg_len(points, k, k + 1) if k < v_last else 0.0
             if _never_refined(q, radius, s_prev, s_next, k > v_first, k < v_last):
                 continue
-            n_late += _make_exact(points, k, val, exact, box, child, span, tri, normals, rim, tri_box, stack, stack_d)
+            n_late += _make_exact(points, k, val, exact, bvh, tri_box)
             dk = val[k]
             if k > v_first and val[k - 1] < dk:  # a bound below dk: decide on the exact value
-                n_late += _make_exact(points, k - 1, val, exact, box, child, span, tri, normals, rim, tri_box,
-                                      stack, stack_d)
+                n_late += _make_exact(points, k - 1, val, exact, bvh, tri_box)
                 if val[k - 1] < dk:
                     continue
             if k < v_last and val[k + 1] <= dk:
-                n_late += _make_exact(points, k + 1, val, exact, box, child, span, tri, normals, rim, tri_box,
-                                      stack, stack_d)
+                n_late += _make_exact(points, k + 1, val, exact, bvh, tri_box)
                 if val[k + 1] <= dk:
                     continue
             # the side bounds from the neighbours' values (bounds or exact): when they rule k out,
             # so would the exact ones; otherwise take the exact values
-            side_prev = side_next = np.inf
+            side_lower = np.full(2, np.inf)
             if k > v_first:
-                side_prev = 0.5 * (dk + val[k - 1] - s_prev)
+                side_lower[0] = 0.5 * (dk + val[k - 1] - s_prev)
             if k < v_last:
-                side_next = 0.5 * (dk + val[k + 1] - s_next)
-            if min(dk, side_prev, side_next) >= radius:
+                side_lower[1] = 0.5 * (dk + val[k + 1] - s_next)
+            if min(dk, side_lower[0], side_lower[1]) >= radius:
                 continue
             if k > v_first and not exact[k - 1]:
-                n_late += _make_exact(points, k - 1, val, exact, box, child, span, tri, normals, rim, tri_box,
-                                      stack, stack_d)
-                side_prev = 0.5 * (dk + val[k - 1] - s_prev)
+                n_late += _make_exact(points, k - 1, val, exact, bvh, tri_box)
+                side_lower[0] = 0.5 * (dk + val[k - 1] - s_prev)
             if k < v_last and not exact[k + 1]:
-                n_late += _make_exact(points, k + 1, val, exact, box, child, span, tri, normals, rim, tri_box,
-                                      stack, stack_d)
-                side_next = 0.5 * (dk + val[k + 1] - s_next)
-            if min(dk, side_prev, side_next) >= radius:
+                n_late += _make_exact(points, k + 1, val, exact, bvh, tri_box)
+                side_lower[1] = 0.5 * (dk + val[k + 1] - s_next)
+            if min(dk, side_lower[0], side_lower[1]) >= radius:
                 continue
             # from here on: _head_minima_kernel's refinement, on exact values
             n_refined += 1
             best_v, best_t, best_d = k, 0.0, dk
             if k == v_last:  # express the vertex as the end of its segment
                 best_v, best_t = k - 1, 1.0
-            if k > v_first and side_prev < radius:  # segment (k - 1, k), outside the attachment
+            if k > v_first and side_lower[0] < radius:  # segment (k - 1, k), outside the attachment
                 a0, a1 = arc[k - 1] - arc[v_first], arc[k] - arc[v_first]
                 t_lo = 0.0
                 if a0 < min_root_arc:
                     t_lo = (min_root_arc - a0) / (a1 - a0) if a1 > a0 else 1.0
-                t, d, cand, cdist, cpos = _refine_segment(points, k - 1, val[k - 1], dk, t_lo, box, child, span, tri,
-                                                          normals, rim, tri_box, rel_tol, cand, cdist, cpos, stack,
-                                                          stack_d)
+                t, d, cand = _golden_cand(points[k - 1], points[k], val[k - 1], dk, t_lo, bvh, tri_box, rel_tol, cand)
                 if d < best_d and t > t_lo + rel_tol:
                     best_v, best_t, best_d = k - 1, t, d
-            if k < v_last and side_next < radius:  # segment (k, k + 1)
-                t, d, cand, cdist, cpos = _refine_segment(points, k, dk, val[k + 1], 0.0, box, child, span, tri,
-                                                          normals, rim, tri_box, rel_tol, cand, cdist, cpos, stack,
-                                                          stack_d)
+            if k < v_last and side_lower[1] < radius:  # segment (k, k + 1)
+                t, d, cand = _golden_cand(points[k], points[k + 1], dk, val[k + 1], 0.0, bvh, tri_box, rel_tol, cand)
                 if d < best_d:
                     best_v, best_t, best_d = k, t, d
             if best_d >= radius:
