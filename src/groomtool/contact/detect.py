@@ -650,7 +650,6 @@ def _close_pairs_kernel(keys, ids, first, box, capsule, origin, h, nx, ny, point
     loops (arrays carried through a loop cost reference counting in every iteration).
     """
     n_groups = first.shape[0] - 1
-    n_seg = seg_v0.shape[0]
     self_skip = min_self_arc * (1.0 - 1e-9)  # spans below this have no two points min_self_arc apart
     sb = _segment_boxes(points, seg_v0, seg_radius)
     capacity = out_i.shape[0]
@@ -861,70 +860,13 @@ def _find_pairs(points, offsets, arc, radius, min_self_arc, cell_size):
 
 # ------------------------------------------------------------------------------ deduplication
 @nb.njit(cache=True)
-def _local_minima_kernel(pi, pj, ps, pt, pd, seg_strand, tol):
-    """Keep pairs whose closest point is a local minimum of the polyline/polyline distance (pairs
-    sorted by (i, j), as :func:`close_segment_pairs` gives them).  A neighbouring pair (a, b) is
-    looked up in row a (the pairs whose first segment is a, sorted by b; rows are short)."""
-    m = pi.shape[0]
-    n_seg = seg_strand.shape[0]
-    row = np.zeros(n_seg + 1, np.int64)
-    for k in range(m):
-        row[pi[k] + 1] += 1
-    for c in range(n_seg):
-        row[c + 1] += row[c]
-    keep = np.ones(m, np.bool_)
-    ni = np.empty(2, np.int64)
-    nj = np.empty(2, np.int64)
-    for k in range(m):
-        i, j = pi[k], pj[k]
-        if 0.0 < ps[k] < 1.0 and 0.0 < pt[k] < 1.0:
-            continue
-        # segments sharing the closest point (vertex) with i, and with j
-        ni[0] = i
-        ci = 1
-        if ps[k] == 0.0 and i > 0 and seg_strand[i - 1] == seg_strand[i]:
-            ni[1] = i - 1
-            ci = 2
-        elif ps[k] == 1.0 and i + 1 < n_seg and seg_strand[i + 1] == seg_strand[i]:
-            ni[1] = i + 1
-            ci = 2
-        nj[0] = j
-        cj = 1
-        if pt[k] == 0.0 and j > 0 and seg_strand[j - 1] == seg_strand[j]:
-            nj[1] = j - 1
-            cj = 2
-        elif pt[k] == 1.0 and j + 1 < n_seg and seg_strand[j + 1] == seg_strand[j]:
-            nj[1] = j + 1
-            cj = 2
-        for x in range(ci):
-            for y in range(cj):
-                if x == 0 and y == 0:
-                    continue
-                a = min(ni[x], nj[y])
-                b = max(ni[x], nj[y])
-                if a == b:
-                    continue
-                lo, hi = row[a], row[a + 1]  # binary search for b in row a
-                while lo < hi:
-                    mid = (lo + hi) >> 1
-                    if pj[mid] < b:
-                        lo = mid + 1
-                    else:
-                        hi = mid
-                if lo < row[a + 1] and pj[lo] == b:
-                    d_other = pd[lo]
-                    # (a, b) < (i, j) in the pairs' order
-                    if d_other < pd[k] - tol or (d_other <= pd[k] + tol and (a < i or (a == i and b < j))):
-                        keep[k] = False
-    return keep
-
-
-@nb.njit(cache=True)
 def _local_minima_unsorted(pi, pj, ps, pt, pd, n, seg_strand, tol):
-    """:func:`_local_minima_kernel` on the first n pairs in any order (distinct pairs i < j), the
-    neighbours looked up in a hash table of the pairs: the same decisions (each depends on the set of
-    pairs, their values and the (i, j) order of keys only).  Returns the indices of the kept pairs,
-    sorted by (i, j)."""
+    """Keep the pairs whose closest point is a local minimum of the polyline/polyline distance: a pair whose
+    closest point is a vertex (s or t at 0 or 1) is dropped when a neighbouring pair sharing that vertex is
+    closer (ties: the smaller (i, j) wins).  The first n pairs in any order (distinct pairs i < j), the
+    neighbours looked up in a hash table of the pairs: each decision depends on the set of pairs, their values
+    and the (i, j) order of keys only (the sorted-pairs search of tests/reference/contact.py gives the same).
+    Returns the indices of the kept pairs, sorted by (i, j)."""
     n_seg = seg_strand.shape[0]
     bits = 1
     while (1 << bits) < 2 * n:
