@@ -10,7 +10,8 @@ Policy (``groom invert --stabilize stiffness``, the default):
 
     f_s <- min(cap, margin * rho_s)   for every strand with rho_s >= f_s (unstable with its current f_s),
 
-other strands keep f_s (1 at the start: only the strands that need it are stiffened).  The inversion is
+(a strand raised before: the growth of its rho with f extrapolated, ``stiffening_step``); other strands keep
+f_s (1 at the start: only the strands that need it are stiffened).  The inversion is
 then solved again with the new K (q0 and the contact forces depend on K, and so do the contacts that hold
 a strand), and the ratios recomputed, until no strand needs more (or ``MAX_ROUNDS``).  Strands still
 unstable at the cap are named in the report.
