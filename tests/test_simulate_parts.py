@@ -370,6 +370,18 @@ def test_progress_estimate_leaves_out_the_first_step_and_estimates_each_run_from
     assert bar.estimate_s() == pytest.approx(1.0 * 8)
 
 
+def test_progress_estimate_is_not_thrown_by_a_few_slow_early_steps():
+    """A sagging groom's second and third steps take several times its later ones: the estimate is the median of the
+    measured steps (a mean of 1.0, 0.3, 0.25 s would announce 0.52 s a step)."""
+    bar = StepProgress([("naive", 24)], enabled=False)
+    for seconds in (30.0, 1.0, 0.3, 0.25):
+        bar.step(seconds)
+    assert bar.step_time_s() == pytest.approx(0.3)
+    assert bar.estimate_s() == pytest.approx(0.3 * 20)
+    bar.step(0.2)
+    assert bar.step_time_s() == pytest.approx(0.275)  # an even count: the mean of the middle two
+
+
 def test_progress_announces_each_run_and_names_the_runs_to_come():
     import io
 

@@ -2,8 +2,9 @@
 
 The first step of a run loads (or, on a first run, compiles) the numba kernels and factorises every
 strand's step matrix from scratch (the unstable-mode corrections are kept for the later steps:
-minutes for thousands of long strands): it is shown as such and left out of the estimate, which is the mean of the later
-steps of the run times its steps left.  Runs differ too much to estimate one from another (groom check's inverted
+minutes for thousands of long strands): it is shown as such and left out of the estimate, which is the median of the
+run's last 50 measured steps times its steps left (the median: a sagging groom's second and third steps take 2-4x its
+later ones, and a mean of them announced twice the run's real time).  Runs differ too much to estimate one from another (groom check's inverted
 groom at rest takes tens of milliseconds a step, the sagging naive one ten times more: its contact solves), so each
 run is estimated from its own steps, printed once per run after ``announce_after`` of them, with the runs still to
 come named.
@@ -40,13 +41,19 @@ class StepProgress:
         """Steps left in the current run."""
         return (self.runs[self.index][1] - self.done_in_run) if self.index < len(self.runs) else 0
 
-    def estimate_s(self) -> float | None:
-        """Seconds left in the current run: its mean measured step time x its steps left (None before one of its
-        steps was measured)."""
+    def step_time_s(self) -> float | None:
+        """The current run's step time: the median of its last 50 measured steps (None before one was measured)."""
         if not self.measured:
             return None
-        recent = self.measured[-50:]
-        return sum(recent) / len(recent) * self.steps_left()
+        recent = sorted(self.measured[-50:])
+        n = len(recent)
+        return recent[n // 2] if n % 2 else 0.5 * (recent[n // 2 - 1] + recent[n // 2])
+
+    def estimate_s(self) -> float | None:
+        """Seconds left in the current run: step_time_s() x its steps left (None before one of its steps was
+        measured)."""
+        per_step = self.step_time_s()
+        return None if per_step is None else per_step * self.steps_left()
 
     def _open(self) -> None:
         if not self.enabled or self.index >= len(self.runs):
@@ -67,7 +74,7 @@ class StepProgress:
             self.bar.set_postfix_str(f"first step {seconds:.1f} s (kernels loaded, step matrices factorised)",
                                      refresh=False)
         else:
-            self.bar.set_postfix_str(f"{1e3 * sum(self.measured[-50:]) / len(self.measured[-50:]):.0f} ms/step, "
+            self.bar.set_postfix_str(f"{1e3 * self.step_time_s():.0f} ms/step, "
                                      f"~{_duration(left)} left", refresh=False)
         self.bar.update(1)
         if not self.announced and len(self.measured) >= self.announce_after:
