@@ -216,7 +216,7 @@ def _fill_csr(strand_a, elem_a, x_a, own_a, strand_b, elem_b, x_b, own_b, frames
 
 
 def generalized_contact_force(helix: sh.SuperHelix, contacts, forces: np.ndarray,
-                              kin: sh.Kinematics | None = None) -> np.ndarray:
+                              kin: sh.Kinematics | None = None, parts=None) -> np.ndarray:
     """H^T r from the point forces, without H: (S, N, 3), in O(S N + m) time and memory.
 
     The world force on strand a is f = F_i^T r_i at x = C(s_a), its opposite on strand b.  With
@@ -228,31 +228,40 @@ def generalized_contact_force(helix: sh.SuperHelix, contacts, forces: np.ndarray
               element k of own_p^T f_p.
 
     (The equilibrium check uses this; it never builds H.  tests/reference/contact.py has the dense
-    point-Jacobian version the tests compare with.)
+    point-Jacobian version the tests compare with.)  ``parts``: point_jacobian_parts of the contact points on
+    strands (:func:`contact_points` with strand >= 0) when already known (contact/operator.py).
     """
     if kin is None:
         kin = cl.kinematics(helix) if isinstance(helix, cl.SuperClothoid) else sh.kinematics(helix)
     frames = np.asarray(contacts.frame, dtype=np.float64).reshape(-1, 3, 3)
     world = np.einsum("pji,pj->pi", frames, np.asarray(forces, dtype=np.float64).reshape(-1, 3))
+    strand, s = contact_points(contacts)
+    keep = strand >= 0
+    return point_forces_generalized(helix, kin, strand[keep], s[keep], np.concatenate([world, -world])[keep], parts)
+
+
+def contact_points(contacts) -> tuple[np.ndarray, np.ndarray]:
+    """Both sides of the contacts as one list of points (2m,): strands (-1: the head) and arc lengths, side a
+    then side b."""
     strand = np.concatenate([np.asarray(contacts.strand_a, dtype=np.int64),
                              np.asarray(contacts.strand_b, dtype=np.int64)])
     s = np.concatenate([np.asarray(contacts.s_a, dtype=np.float64), np.asarray(contacts.s_b, dtype=np.float64)])
-    keep = strand >= 0
-    return point_forces_generalized(helix, kin, strand[keep], s[keep], np.concatenate([world, -world])[keep])
+    return strand, s
 
 
-def point_forces_generalized(helix: sh.SuperHelix, kin: sh.Kinematics, strand, s, f) -> np.ndarray:
+def point_forces_generalized(helix: sh.SuperHelix, kin: sh.Kinematics, strand, s, f, parts=None) -> np.ndarray:
     """The generalised force of world point forces: Q = sum_p (dC(s_p)/dq)^T f_p, (S, N, 3), for forces f_p
     (P, 3) at arc lengths s_p on strands ``strand`` (P,), by the suffix sums of
-    :func:`generalized_contact_force` in O(S N + P).  A Super Space Clothoid: (S, N + 1, 3), from its dense point
-    Jacobians (:func:`clothoid_point_forces_generalized`)."""
+    :func:`generalized_contact_force` in O(S N + P).  ``parts``: the points' superhelix.point_jacobian_parts when
+    already known (contact/operator.py keeps them per configuration).  A Super Space Clothoid: (S, N + 1, 3), from
+    its dense point Jacobians (:func:`clothoid_point_forces_generalized`)."""
     if isinstance(helix, cl.SuperClothoid):
         return clothoid_point_forces_generalized(helix, kin, strand, s, f)
     S, N = helix.curvatures.shape[:2]
     out = np.zeros((S, N, 3))
     if len(strand):
         strand = np.ascontiguousarray(strand, dtype=np.int64)
-        elem, x, own = sh.point_jacobian_parts(helix, strand, s, kin)
+        elem, x, own = parts if parts is not None else sh.point_jacobian_parts(helix, strand, s, kin)
         _generalized_force_kernel(strand, elem, np.ascontiguousarray(x), np.ascontiguousarray(own),
                                   np.ascontiguousarray(f, dtype=np.float64), np.ascontiguousarray(kin.C),
                                   np.ascontiguousarray(kin.R), np.ascontiguousarray(kin.D),

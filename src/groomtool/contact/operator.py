@@ -18,7 +18,7 @@ import numpy as np
 from numba import njit
 
 from ..rods import superhelix as sh
-from .jacobian import _generalized_force_kernel
+from .jacobian import contact_points, generalized_contact_force
 
 
 def point_velocities(helix: sh.SuperHelix, kin: sh.Kinematics, strand, s, rates, parts=None) -> np.ndarray:
@@ -80,14 +80,6 @@ def _point_velocity_kernel(strand, elem, x, own, v, C, R, D, Theta, n_elements, 
         out[p, 2] = lin[k, e, 2] - (x0 * a1 - x1 * a0) + own[p, 2, 0] * v0 + own[p, 2, 1] * v1 + own[p, 2, 2] * v2
 
 
-def _contact_points(contacts):
-    """Both sides' strands and arc lengths as one list of points (2m,): side a, then side b (-1: the head)."""
-    strand = np.concatenate([np.asarray(contacts.strand_a, dtype=np.int64),
-                             np.asarray(contacts.strand_b, dtype=np.int64)])
-    s = np.concatenate([np.asarray(contacts.s_a, dtype=np.float64), np.asarray(contacts.s_b, dtype=np.float64)])
-    return strand, s
-
-
 def contact_velocities(helix: sh.SuperHelix, contacts, rates, kin: sh.Kinematics | None = None,
                        parts=None) -> np.ndarray:
     """H v without H: u_i = F_i (xdot_a(s_a) - xdot_b(s_b)) (m, 3) in contact frames, for rates (S, N, 3) or flat
@@ -98,7 +90,7 @@ def contact_velocities(helix: sh.SuperHelix, contacts, rates, kin: sh.Kinematics
     rates = np.asarray(rates, dtype=np.float64)
     if rates.ndim == 1:
         rates = helix.from_flat(rates.reshape(-1, 3))
-    strand, s = _contact_points(contacts)
+    strand, s = contact_points(contacts)
     on = np.flatnonzero(strand >= 0) if parts is None else parts[0]
     xdot = np.zeros((2 * m, 3))
     xdot[on] = point_velocities(helix, kin, strand[on], s[on], rates, None if parts is None else parts[1])
@@ -116,7 +108,7 @@ class ContactJacobianOperator:
         self.contacts = contacts
         self.kin = kin if kin is not None else sh.kinematics(helix)
         self.shape = (3 * len(contacts.strand_a), 3 * int(helix.flat_offsets()[-1]))
-        strand, s = _contact_points(contacts)
+        strand, s = contact_points(contacts)
         on = np.flatnonzero(strand >= 0)
         self._parts = (on, sh.point_jacobian_parts(helix, strand[on], s[on], self.kin))  # per configuration
 
@@ -125,20 +117,10 @@ class ContactJacobianOperator:
         return contact_velocities(self.helix, self.contacts, np.asarray(v).ravel(), self.kin, self._parts).ravel()
 
     def rmatvec(self, r) -> np.ndarray:
-        """H^T r, (3E,): the suffix sums of contact/jacobian.generalized_contact_force on the kept point parts."""
-        m = len(self.contacts.strand_a)
-        frames = np.asarray(self.contacts.frame, dtype=np.float64).reshape(m, 3, 3)
-        world = np.einsum("pji,pj->pi", frames, np.asarray(r, dtype=np.float64).reshape(m, 3))
-        on, (elem, x, own) = self._parts
-        strand, _ = _contact_points(self.contacts)
-        S, N = self.helix.curvatures.shape[:2]
-        out = np.zeros((S, N, 3))
-        kin = self.kin
-        _generalized_force_kernel(strand[on], elem, np.ascontiguousarray(x), np.ascontiguousarray(own),
-                                  np.ascontiguousarray(np.concatenate([world, -world])[on]), np.ascontiguousarray(kin.C),
-                                  np.ascontiguousarray(kin.R), np.ascontiguousarray(kin.D),
-                                  np.ascontiguousarray(kin.Theta), self.helix.n_elements, out)
-        return self.helix.to_flat(out).ravel()
+        """H^T r, (3E,): contact/jacobian.generalized_contact_force on the kept point parts."""
+        Q = generalized_contact_force(self.helix, self.contacts, np.asarray(r).reshape(-1, 3), self.kin,
+                                      self._parts[1])
+        return self.helix.to_flat(Q).ravel()
 
     def __matmul__(self, v):
         return self.matvec(v)
