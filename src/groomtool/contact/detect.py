@@ -887,22 +887,13 @@ def _local_minima_unsorted(pi, pj, ps, pt, pd, n, seg_strand, tol):
     for k in range(n):
         i, j = pi[k], pj[k]
         if not (0.0 < ps[k] < 1.0 and 0.0 < pt[k] < 1.0):
+            # segments sharing the closest point (vertex) with i, and with j
             ni[0] = i
-            ci = 1
-            if ps[k] == 0.0 and i > 0 and seg_strand[i - 1] == seg_strand[i]:
-                ni[1] = i - 1
-                ci = 2
-            elif ps[k] == 1.0 and i + 1 < n_seg and seg_strand[i + 1] == seg_strand[i]:
-                ni[1] = i + 1
-                ci = 2
+            ni[1] = _vertex_neighbour(i, ps[k], seg_strand)
+            ci = 1 if ni[1] < 0 else 2
             nj[0] = j
-            cj = 1
-            if pt[k] == 0.0 and j > 0 and seg_strand[j - 1] == seg_strand[j]:
-                nj[1] = j - 1
-                cj = 2
-            elif pt[k] == 1.0 and j + 1 < n_seg and seg_strand[j + 1] == seg_strand[j]:
-                nj[1] = j + 1
-                cj = 2
+            nj[1] = _vertex_neighbour(j, pt[k], seg_strand)
+            cj = 1 if nj[1] < 0 else 2
             for x in range(ci):
                 for y in range(cj):
                     if x == 0 and y == 0:
@@ -930,6 +921,17 @@ def _local_minima_unsorted(pi, pj, ps, pt, pd, n, seg_strand, tol):
             keys[c] = pi[k] * n_seg + pj[k]
             c += 1
     return kept[np.argsort(keys)]
+
+
+@nb.njit(cache=True, inline="always")
+def _vertex_neighbour(seg, param, seg_strand):
+    """The segment of the same strand sharing the vertex at ``param`` (0: its start, 1: its end) of segment
+    ``seg``, else -1 (an interior point, or the strand's first/last vertex)."""
+    if param == 0.0 and seg > 0 and seg_strand[seg - 1] == seg_strand[seg]:
+        return seg - 1
+    if param == 1.0 and seg + 1 < seg_strand.shape[0] and seg_strand[seg + 1] == seg_strand[seg]:
+        return seg + 1
+    return -1
 
 
 @nb.njit(cache=True, inline="always")
