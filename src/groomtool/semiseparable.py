@@ -1,0 +1,258 @@
+"""Symmetric block-semiseparable matrices of strands, and their Cholesky factors in O(E r^2).
+
+A strand of E elements with 3 dofs each gives a symmetric matrix of 3 x 3 blocks
+
+    A_jj = diag_j,     A_kj = later_k^T earlier_j   (k > j),     A_jk = A_kj^T,
+
+with generators later_k and earlier_j of r rows (r x 3).  A Super-Helix's mass matrix, its step matrix and the
+strand-split ADMM's D^-1 + J^T J / rho have this form: the velocity of a point beyond element j depends on
+element j's rates through the rigid generators of j alone (docs/simulation.md section 7, docs/solvers.md
+section 12).  Its Cholesky factor A = L L^T keeps the form,
+
+    L_kj = later_k^T W_j  (k > j),   L_jj L_jj^T = diag_j - later_j^T Sigma_j later_j,
+    W_j = (earlier_j - Sigma_j later_j) L_jj^-T,   Sigma_1 = 0,   Sigma_{j+1} = Sigma_j + W_j W_j^T,
+
+(check: sum_{l<=j} L_kl L_jl^T = later_k^T (Sigma_j later_j + W_j L_jj^T) = later_k^T earlier_j), so a factor
+costs O(E r^2), stores 9 + 3 r numbers per element, and A x = y is solved in O(E r):
+
+    forward   z_k = L_kk^-1 (y_k - later_k^T t_k),      t_k = sum_{j<k} W_j z_j,
+    backward  x_j = L_jj^-T (z_j - W_j^T s_j),           s_j = sum_{k>j} later_k x_k.
+
+Several strands are stored back to back: element arrays (E_total, ...) and element offsets ``offsets`` (S + 1,);
+a strand's dofs are 3 e0 .. 3 e1 of the flat vector (3 per element, in element order).  The njit functions
+(``factor_strand``, ``solve_strand``, ...) work on one strand and are meant to be called from other kernels.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit
+
+
+@njit(cache=True)
+def _chol3(a, out) -> bool:
+    """out = the lower Cholesky factor of the symmetric 3 x 3 ``a``; False when a is not positive definite."""
+    d0 = a[0, 0]
+    if not d0 > 0.0:
+        return False
+    l00 = np.sqrt(d0)
+    l10 = a[1, 0] / l00
+    l20 = a[2, 0] / l00
+    d1 = a[1, 1] - l10 * l10
+    if not d1 > 0.0:
+        return False
+    l11 = np.sqrt(d1)
+    l21 = (a[2, 1] - l20 * l10) / l11
+    d2 = a[2, 2] - l20 * l20 - l21 * l21
+    if not d2 > 0.0:
+        return False
+    out[0, 0], out[0, 1], out[0, 2] = l00, 0.0, 0.0
+    out[1, 0], out[1, 1], out[1, 2] = l10, l11, 0.0
+    out[2, 0], out[2, 1], out[2, 2] = l20, l21, np.sqrt(d2)
+    return True
+
+
+@njit(cache=True)
+def factor_strand(diag, later, earlier, e0, e1, L, W) -> bool:
+    """The factor (L_jj, W_j) of elements e0 .. e1 - 1 (module docstring) into L[e0:e1], W[e0:e1].  False when a
+    pivot diag_j - later_j^T Sigma_j later_j is not positive definite (then A is not; L, W are partial)."""
+    r = later.shape[1]
+    sigma = np.zeros((r, r))
+    t = np.empty((r, 3))
+    piv = np.empty((3, 3))
+    for j in range(e0, e1):
+        for a in range(r):  # t = Sigma later_j
+            for c in range(3):
+                acc = 0.0
+                for b in range(r):
+                    acc += sigma[a, b] * later[j, b, c]
+                t[a, c] = acc
+        for c in range(3):  # pivot = diag_j - later_j^T t
+            for d in range(3):
+                acc = diag[j, c, d]
+                for a in range(r):
+                    acc -= later[j, a, c] * t[a, d]
+                piv[c, d] = acc
+        if not _chol3(piv, L[j]):
+            return False
+        l00, l10, l11 = L[j, 0, 0], L[j, 1, 0], L[j, 1, 1]
+        l20, l21, l22 = L[j, 2, 0], L[j, 2, 1], L[j, 2, 2]
+        for a in range(r):  # W_j = (earlier_j - t) L_jj^-T: each row w solves L_jj w^T = (earlier_j - t)^T row
+            b0 = earlier[j, a, 0] - t[a, 0]
+            b1 = earlier[j, a, 1] - t[a, 1]
+            b2 = earlier[j, a, 2] - t[a, 2]
+            w0 = b0 / l00
+            w1 = (b1 - l10 * w0) / l11
+            w2 = (b2 - l20 * w0 - l21 * w1) / l22
+            W[j, a, 0], W[j, a, 1], W[j, a, 2] = w0, w1, w2
+        for a in range(r):  # Sigma += W_j W_j^T
+            for b in range(r):
+                sigma[a, b] += W[j, a, 0] * W[j, b, 0] + W[j, a, 1] * W[j, b, 1] + W[j, a, 2] * W[j, b, 2]
+    return True
+
+
+@njit(cache=True)
+def solve_lower_strand(L, W, later, e0, e1, y):
+    """y <- L^-1 y in place (y: the strand's 3 (e1 - e0) entries)."""
+    r = later.shape[1]
+    t = np.zeros(r)
+    for k in range(e0, e1):
+        i = 3 * (k - e0)
+        y0, y1, y2 = y[i], y[i + 1], y[i + 2]
+        for a in range(r):
+            ta = t[a]
+            y0 -= later[k, a, 0] * ta
+            y1 -= later[k, a, 1] * ta
+            y2 -= later[k, a, 2] * ta
+        z0 = y0 / L[k, 0, 0]
+        z1 = (y1 - L[k, 1, 0] * z0) / L[k, 1, 1]
+        z2 = (y2 - L[k, 2, 0] * z0 - L[k, 2, 1] * z1) / L[k, 2, 2]
+        y[i], y[i + 1], y[i + 2] = z0, z1, z2
+        for a in range(r):
+            t[a] += W[k, a, 0] * z0 + W[k, a, 1] * z1 + W[k, a, 2] * z2
+
+
+@njit(cache=True)
+def solve_upper_strand(L, W, later, e0, e1, y):
+    """y <- L^-T y in place."""
+    r = later.shape[1]
+    s = np.zeros(r)
+    for j in range(e1 - 1, e0 - 1, -1):
+        i = 3 * (j - e0)
+        z0, z1, z2 = y[i], y[i + 1], y[i + 2]
+        for a in range(r):
+            sa = s[a]
+            z0 -= W[j, a, 0] * sa
+            z1 -= W[j, a, 1] * sa
+            z2 -= W[j, a, 2] * sa
+        x2 = z2 / L[j, 2, 2]
+        x1 = (z1 - L[j, 2, 1] * x2) / L[j, 1, 1]
+        x0 = (z0 - L[j, 1, 0] * x1 - L[j, 2, 0] * x2) / L[j, 0, 0]
+        y[i], y[i + 1], y[i + 2] = x0, x1, x2
+        for a in range(r):
+            s[a] += later[j, a, 0] * x0 + later[j, a, 1] * x1 + later[j, a, 2] * x2
+
+
+@njit(cache=True)
+def solve_strand(L, W, later, e0, e1, y):
+    """y <- A^-1 y = L^-T L^-1 y in place (y: the strand's 3 (e1 - e0) entries)."""
+    solve_lower_strand(L, W, later, e0, e1, y)
+    solve_upper_strand(L, W, later, e0, e1, y)
+
+
+@njit(cache=True)
+def matvec_strand(diag, later, earlier, e0, e1, x, y):
+    """y = A x for one strand: y_j = diag_j x_j + later_j^T sum_{l<j} earlier_l x_l + earlier_j^T sum_{k>j} later_k x_k."""
+    r = later.shape[1]
+    acc = np.zeros(r)
+    for j in range(e0, e1):  # the diagonal and lower part
+        i = 3 * (j - e0)
+        x0, x1, x2 = x[i], x[i + 1], x[i + 2]
+        for c in range(3):
+            v = diag[j, c, 0] * x0 + diag[j, c, 1] * x1 + diag[j, c, 2] * x2
+            for a in range(r):
+                v += later[j, a, c] * acc[a]
+            y[i + c] = v
+        for a in range(r):
+            acc[a] += earlier[j, a, 0] * x0 + earlier[j, a, 1] * x1 + earlier[j, a, 2] * x2
+    acc[:] = 0.0
+    for j in range(e1 - 1, e0 - 1, -1):  # the upper part
+        i = 3 * (j - e0)
+        for c in range(3):
+            v = 0.0
+            for a in range(r):
+                v += earlier[j, a, c] * acc[a]
+            y[i + c] += v
+        for a in range(r):
+            acc[a] += later[j, a, 0] * x[i] + later[j, a, 1] * x[i + 1] + later[j, a, 2] * x[i + 2]
+
+
+@njit(cache=True)
+def _factor_all(diag, later, earlier, offsets, L, W, ok):
+    for s in range(offsets.shape[0] - 1):
+        ok[s] = factor_strand(diag, later, earlier, offsets[s], offsets[s + 1], L, W)
+
+
+@njit(cache=True)
+def _solve_all(L, W, later, offsets, ok, rhs):
+    """rhs (3 E, m) <- A^-1 rhs, column by column, strand by strand (strands not ok: NaN)."""
+    m = rhs.shape[1]
+    for s in range(offsets.shape[0] - 1):
+        e0, e1 = offsets[s], offsets[s + 1]
+        y = np.empty(3 * (e1 - e0))
+        for c in range(m):
+            for i in range(3 * (e1 - e0)):
+                y[i] = rhs[3 * e0 + i, c]
+            if ok[s]:
+                solve_strand(L, W, later, e0, e1, y)
+            else:
+                y[:] = np.nan
+            for i in range(3 * (e1 - e0)):
+                rhs[3 * e0 + i, c] = y[i]
+
+
+@njit(cache=True)
+def _matvec_all(diag, later, earlier, offsets, x, out):
+    for s in range(offsets.shape[0] - 1):
+        e0, e1 = offsets[s], offsets[s + 1]
+        matvec_strand(diag, later, earlier, e0, e1, x[3 * e0:3 * e1], out[3 * e0:3 * e1])
+
+
+def _as_blocks(a, name: str, r: int | None = None) -> np.ndarray:
+    a = np.ascontiguousarray(a, dtype=np.float64)
+    if a.ndim != 3 or a.shape[2] != 3 or (r is not None and a.shape[1] != r):
+        raise ValueError(f"{name}: expected shape (E, {r if r is not None else 'r'}, 3), got {a.shape}")
+    return a
+
+
+@dataclass
+class SemiseparableFactor:
+    """A = L L^T of the strands of ``offsets`` (module docstring): pivots L (E, 3, 3), W (E, r, 3), the matrix's
+    ``later`` generators (kept by reference), ``ok`` (S,): False for a strand whose matrix is not positive
+    definite (its solves give NaN)."""
+
+    L: np.ndarray
+    W: np.ndarray
+    later: np.ndarray
+    offsets: np.ndarray
+    ok: np.ndarray
+
+    def solve(self, rhs) -> np.ndarray:
+        """A^-1 rhs for rhs (3 E,) or (3 E, m)."""
+        rhs = np.asarray(rhs, dtype=np.float64)
+        out = np.array(rhs if rhs.ndim == 2 else rhs[:, None], dtype=np.float64, order="C")
+        if out.shape[0] != 3 * self.L.shape[0]:
+            raise ValueError(f"rhs has {out.shape[0]} rows; the factor has {3 * self.L.shape[0]} dofs")
+        _solve_all(self.L, self.W, self.later, self.offsets, self.ok, out)
+        return out.reshape(rhs.shape)
+
+
+def factor(diag, later, earlier, offsets) -> SemiseparableFactor:
+    """Cholesky factors of the strands' matrices A_jj = diag_j, A_kj = later_k^T earlier_j (k > j): diag (E, 3, 3),
+    later and earlier (E, r, 3), element offsets (S + 1,)."""
+    diag = _as_blocks(diag, "diag")
+    later = _as_blocks(later, "later")
+    earlier = _as_blocks(earlier, "earlier", later.shape[1])
+    if diag.shape[1] != 3 or len(diag) != len(later) or len(later) != len(earlier):
+        raise ValueError(f"diag {diag.shape}, later {later.shape} and earlier {earlier.shape} do not match")
+    offsets = np.ascontiguousarray(offsets, dtype=np.int64)
+    if offsets[0] != 0 or offsets[-1] != len(diag) or np.any(np.diff(offsets) < 0):
+        raise ValueError(f"offsets must rise from 0 to {len(diag)}")
+    L = np.zeros_like(diag)
+    W = np.zeros_like(later)
+    ok = np.zeros(len(offsets) - 1, dtype=np.bool_)
+    _factor_all(diag, later, earlier, offsets, L, W, ok)
+    return SemiseparableFactor(L, W, later, offsets, ok)
+
+
+def matvec(diag, later, earlier, offsets, x) -> np.ndarray:
+    """A x for the strands' matrices (``factor``'s arguments), x (3 E,)."""
+    diag = _as_blocks(diag, "diag")
+    later = _as_blocks(later, "later")
+    earlier = _as_blocks(earlier, "earlier", later.shape[1])
+    x = np.ascontiguousarray(x, dtype=np.float64)
+    out = np.empty_like(x)
+    _matvec_all(diag, later, earlier, np.ascontiguousarray(offsets, dtype=np.int64), x, out)
+    return out
