@@ -16,7 +16,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from groomtool import stability
+from groomtool import semiseparable, stability
 from groomtool.inverse_problem import equilibrium_residuals
 from groomtool.material import Material
 from groomtool.rods import superhelix as sh
@@ -84,18 +84,19 @@ def test_kernels_match_the_dense_matrix(seed, scale):
     rng = np.random.default_rng(seed)
     x = rng.normal(size=3 * N)
     y = np.empty(3 * N)
-    stability._matvec(u, v, d, N, x, y)
+    later, earlier, neg_later = stability._semiseparable_form(u, v, N)
+    semiseparable.matvec_strand(d, later, earlier, 0, N, x, y)
     assert np.abs(y - A @ x).max() <= 1e-12 * np.abs(A).max() * np.abs(x).sum()
     lam = np.linalg.eigvalsh(A)
-    L, Y = np.empty((N, 6)), np.empty((N, 3, 3))
+    diag, L, Y = np.empty((N, 3, 3)), np.empty((N, 3, 3)), np.empty((N, 3, 3))
     norm = np.linalg.norm(A)
     # positive definite exactly above lambda_max (up to round-off)
-    assert stability._cholesky(u, v, d, N, lam[-1] + 1e-9 * norm + 1e-300, L, Y)
+    assert stability._cholesky(d, neg_later, earlier, N, lam[-1] + 1e-9 * norm + 1e-300, diag, L, Y)
     if lam[-1] - lam[0] > 1e-6 * norm:
-        assert not stability._cholesky(u, v, d, N, lam[-1] - 1e-9 * norm, L, Y)
+        assert not stability._cholesky(d, neg_later, earlier, N, lam[-1] - 1e-9 * norm, diag, L, Y)
         sigma = lam[-1] + 0.3 * (lam[-1] - lam[0])
-        assert stability._cholesky(u, v, d, N, sigma, L, Y)
-        stability._solve(v, L, Y, N, x, y)
+        assert stability._cholesky(d, neg_later, earlier, N, sigma, diag, L, Y)
+        stability._solve(neg_later, L, Y, N, x, y)
         ref = np.linalg.solve(sigma * np.eye(3 * N) - A, x)
         assert np.abs(y - ref).max() <= 1e-9 * np.abs(ref).max()
 
@@ -155,9 +156,10 @@ def test_certified_value_is_pinned_by_the_cholesky_test():
     assert ok
     tol = stability.RTOL * abs(theta) + stability.ATOL_EPS * EPS * np.linalg.norm(A)
     assert lam - 2 * tol <= theta <= lam + 64 * EPS * np.linalg.norm(A)
-    L, Y = np.empty((N, 6)), np.empty((N, 3, 3))
-    assert not stability._cholesky(u, v, d, N, theta - 1e-8 * abs(theta), L, Y)
-    assert stability._cholesky(u, v, d, N, theta + tol, L, Y)
+    later, earlier, neg_later = stability._semiseparable_form(u, v, N)
+    diag, L, Y = np.empty((N, 3, 3)), np.empty((N, 3, 3)), np.empty((N, 3, 3))
+    assert not stability._cholesky(d, neg_later, earlier, N, theta - 1e-8 * abs(theta), diag, L, Y)
+    assert stability._cholesky(d, neg_later, earlier, N, theta + tol, diag, L, Y)
 
 
 # --------------------------------------------------------------------------- contact-held ratios

@@ -31,7 +31,7 @@ import numpy as np
 from numba import njit
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _chol3(a, out) -> bool:
     """out = the lower Cholesky factor of the symmetric 3 x 3 ``a``; False when a is not positive definite."""
     d0 = a[0, 0]
@@ -54,7 +54,7 @@ def _chol3(a, out) -> bool:
     return True
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def factor_strand(diag, later, earlier, e0, e1, L, W) -> bool:
     """The factor (L_jj, W_j) of elements e0 .. e1 - 1 (module docstring) into L[e0:e1], W[e0:e1].  False when a
     pivot diag_j - later_j^T Sigma_j later_j is not positive definite (then A is not; L, W are partial)."""
@@ -93,7 +93,7 @@ def factor_strand(diag, later, earlier, e0, e1, L, W) -> bool:
     return True
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def solve_lower_strand(L, W, later, e0, e1, y):
     """y <- L^-1 y in place (y: the strand's 3 (e1 - e0) entries)."""
     r = later.shape[1]
@@ -114,7 +114,7 @@ def solve_lower_strand(L, W, later, e0, e1, y):
             t[a] += W[k, a, 0] * z0 + W[k, a, 1] * z1 + W[k, a, 2] * z2
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def solve_upper_strand(L, W, later, e0, e1, y):
     """y <- L^-T y in place."""
     r = later.shape[1]
@@ -135,14 +135,14 @@ def solve_upper_strand(L, W, later, e0, e1, y):
             s[a] += later[j, a, 0] * x0 + later[j, a, 1] * x1 + later[j, a, 2] * x2
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def solve_strand(L, W, later, e0, e1, y):
     """y <- A^-1 y = L^-T L^-1 y in place (y: the strand's 3 (e1 - e0) entries)."""
     solve_lower_strand(L, W, later, e0, e1, y)
     solve_upper_strand(L, W, later, e0, e1, y)
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def matvec_strand(diag, later, earlier, e0, e1, x, y):
     """y = A x for one strand: y_j = diag_j x_j + later_j^T sum_{l<j} earlier_l x_l + earlier_j^T sum_{k>j} later_k x_k."""
     r = later.shape[1]
@@ -150,32 +150,39 @@ def matvec_strand(diag, later, earlier, e0, e1, x, y):
     for j in range(e0, e1):  # the diagonal and lower part
         i = 3 * (j - e0)
         x0, x1, x2 = x[i], x[i + 1], x[i + 2]
-        for c in range(3):
-            v = diag[j, c, 0] * x0 + diag[j, c, 1] * x1 + diag[j, c, 2] * x2
-            for a in range(r):
-                v += later[j, a, c] * acc[a]
-            y[i + c] = v
+        v0 = diag[j, 0, 0] * x0 + diag[j, 0, 1] * x1 + diag[j, 0, 2] * x2
+        v1 = diag[j, 1, 0] * x0 + diag[j, 1, 1] * x1 + diag[j, 1, 2] * x2
+        v2 = diag[j, 2, 0] * x0 + diag[j, 2, 1] * x1 + diag[j, 2, 2] * x2
         for a in range(r):
-            acc[a] += earlier[j, a, 0] * x0 + earlier[j, a, 1] * x1 + earlier[j, a, 2] * x2
+            ta = acc[a]
+            v0 += later[j, a, 0] * ta
+            v1 += later[j, a, 1] * ta
+            v2 += later[j, a, 2] * ta
+            acc[a] = ta + earlier[j, a, 0] * x0 + earlier[j, a, 1] * x1 + earlier[j, a, 2] * x2
+        y[i], y[i + 1], y[i + 2] = v0, v1, v2
     acc[:] = 0.0
     for j in range(e1 - 1, e0 - 1, -1):  # the upper part
         i = 3 * (j - e0)
-        for c in range(3):
-            v = 0.0
-            for a in range(r):
-                v += earlier[j, a, c] * acc[a]
-            y[i + c] += v
+        x0, x1, x2 = x[i], x[i + 1], x[i + 2]
+        v0 = v1 = v2 = 0.0
         for a in range(r):
-            acc[a] += later[j, a, 0] * x[i] + later[j, a, 1] * x[i + 1] + later[j, a, 2] * x[i + 2]
+            ta = acc[a]
+            v0 += earlier[j, a, 0] * ta
+            v1 += earlier[j, a, 1] * ta
+            v2 += earlier[j, a, 2] * ta
+            acc[a] = ta + later[j, a, 0] * x0 + later[j, a, 1] * x1 + later[j, a, 2] * x2
+        y[i] += v0
+        y[i + 1] += v1
+        y[i + 2] += v2
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _factor_all(diag, later, earlier, offsets, L, W, ok):
     for s in range(offsets.shape[0] - 1):
         ok[s] = factor_strand(diag, later, earlier, offsets[s], offsets[s + 1], L, W)
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _solve_all(L, W, later, offsets, ok, rhs):
     """rhs (3 E, m) <- A^-1 rhs, column by column, strand by strand (strands not ok: NaN)."""
     m = rhs.shape[1]
@@ -193,7 +200,7 @@ def _solve_all(L, W, later, offsets, ok, rhs):
                 rhs[3 * e0 + i, c] = y[i]
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _matvec_all(diag, later, earlier, offsets, x, out):
     for s in range(offsets.shape[0] - 1):
         e0, e1 = offsets[s], offsets[s + 1]

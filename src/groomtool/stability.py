@@ -18,8 +18,8 @@ superhelix.gravity_force_jacobian_parts scaled by K^-1/2):
 
     A_jk = u_j v_k^T (j < k),   A_kj = v_k u_j^T,   A_jj = d_j,
 
-so products with A, and the block Cholesky of sigma I - A and its solves, cost O(N) (the Schur
-complements keep the form through one 3x3 Phi).  rho = lambda_max(A) is pinned between a Rayleigh
+so products with A, and the block Cholesky of sigma I - A and its solves, cost O(N) (groomtool.semiseparable,
+rank 3: later_k = v_k^T, earlier_j = u_j^T).  rho = lambda_max(A) is pinned between a Rayleigh
 quotient theta <= lambda_max (Lanczos, then inverse iteration with shifts proved to lie above lambda_max)
 and a shift theta + tol at which the Cholesky succeeds (lambda_max < theta + tol), tol = 1e-12 |theta| +
 32 eps ||A||_F, the round-off level of a dense eigvalsh (100 tol accepted once theta has stopped moving); a
@@ -38,6 +38,7 @@ import numpy as np
 from numba import njit
 from threadpoolctl import threadpool_limits
 
+from . import semiseparable as ss
 from .rods import clothoid as cl
 from .rods import superhelix as sh
 
@@ -136,110 +137,37 @@ def _dense(u, v, d, n_elements):
 
 
 # --------------------------------------------------------------------------- O(N) kernels
-@njit(cache=True, error_model="numpy")
-def _cholesky(u, v, d, N, sigma, L, Y):
-    """Block Cholesky of sigma I - A: pivots P_j = L_j L_j^T, Y_j = L_j^-1 (v_j Phi - u_j), Phi -= Y_j^T Y_j.
-    False as soon as a pivot is not positive definite (then neither is sigma I - A)."""
-    Phi = np.zeros((3, 3))
-    T = np.empty((3, 3))
-    P = np.empty((3, 3))
+@njit(cache=True)
+def _semiseparable_form(u, v, N):
+    """A's generators in semiseparable.py's form (A_kj = later_k^T earlier_j, k > j): later_k = v_k^T,
+    earlier_j = u_j^T; and -later, the lower generators of sigma I - A."""
+    later = np.empty((N, 3, 3))
+    earlier = np.empty((N, 3, 3))
     for j in range(N):
         for a in range(3):
             for b in range(3):
-                T[a, b] = v[j, a, 0] * Phi[0, b] + v[j, a, 1] * Phi[1, b] + v[j, a, 2] * Phi[2, b]
-        for a in range(3):
-            for b in range(a + 1):
-                P[a, b] = -d[j, a, b] + T[a, 0] * v[j, b, 0] + T[a, 1] * v[j, b, 1] + T[a, 2] * v[j, b, 2]
-            P[a, a] += sigma
-        l00 = P[0, 0]
-        if not l00 > 0.0:
-            return False
-        l00 = np.sqrt(l00)
-        l10 = P[1, 0] / l00
-        l20 = P[2, 0] / l00
-        l11 = P[1, 1] - l10 * l10
-        if not l11 > 0.0:
-            return False
-        l11 = np.sqrt(l11)
-        l21 = (P[2, 1] - l20 * l10) / l11
-        l22 = P[2, 2] - l20 * l20 - l21 * l21
-        if not l22 > 0.0:
-            return False
-        l22 = np.sqrt(l22)
-        L[j, 0] = l00
-        L[j, 1] = l10
-        L[j, 2] = l11
-        L[j, 3] = l20
-        L[j, 4] = l21
-        L[j, 5] = l22
-        for b in range(3):
-            y0 = (T[0, b] - u[j, 0, b]) / l00
-            y1 = (T[1, b] - u[j, 1, b] - l10 * y0) / l11
-            y2 = (T[2, b] - u[j, 2, b] - l20 * y0 - l21 * y1) / l22
-            Y[j, 0, b] = y0
-            Y[j, 1, b] = y1
-            Y[j, 2, b] = y2
+                later[j, a, b] = v[j, b, a]
+                earlier[j, a, b] = u[j, b, a]
+    return later, earlier, -later
+
+
+@njit(cache=True)
+def _cholesky(d, neg_later, earlier, N, sigma, diag, L, W):
+    """The semiseparable Cholesky factor (L, W) of sigma I - A (diag: scratch for its diagonal blocks).  False
+    as soon as a pivot is not positive definite (then neither is sigma I - A)."""
+    for j in range(N):
         for a in range(3):
             for b in range(3):
-                Phi[a, b] -= Y[j, 0, a] * Y[j, 0, b] + Y[j, 1, a] * Y[j, 1, b] + Y[j, 2, a] * Y[j, 2, b]
-    return True
+                diag[j, a, b] = -d[j, a, b]
+            diag[j, a, a] += sigma
+    return ss.factor_strand(diag, neg_later, earlier, 0, N, L, W)
 
 
-@njit(cache=True, error_model="numpy")
-def _solve(v, L, Y, N, b, x):
-    """x = (sigma I - A)^-1 b with the factors of :func:`_cholesky` (forward, then backward)."""
-    h0 = h1 = h2 = 0.0
-    for a in range(N):
-        l00, l10, l11, l20, l21, l22 = L[a, 0], L[a, 1], L[a, 2], L[a, 3], L[a, 4], L[a, 5]
-        r0 = b[3 * a] - (v[a, 0, 0] * h0 + v[a, 0, 1] * h1 + v[a, 0, 2] * h2)
-        r1 = b[3 * a + 1] - (v[a, 1, 0] * h0 + v[a, 1, 1] * h1 + v[a, 1, 2] * h2)
-        r2 = b[3 * a + 2] - (v[a, 2, 0] * h0 + v[a, 2, 1] * h1 + v[a, 2, 2] * h2)
-        z0 = r0 / l00
-        z1 = (r1 - l10 * z0) / l11
-        z2 = (r2 - l20 * z0 - l21 * z1) / l22
-        x[3 * a] = z0
-        x[3 * a + 1] = z1
-        x[3 * a + 2] = z2
-        h0 += Y[a, 0, 0] * z0 + Y[a, 1, 0] * z1 + Y[a, 2, 0] * z2
-        h1 += Y[a, 0, 1] * z0 + Y[a, 1, 1] * z1 + Y[a, 2, 1] * z2
-        h2 += Y[a, 0, 2] * z0 + Y[a, 1, 2] * z1 + Y[a, 2, 2] * z2
-    r0 = r1 = r2 = 0.0
-    for j in range(N - 1, -1, -1):
-        l00, l10, l11, l20, l21, l22 = L[j, 0], L[j, 1], L[j, 2], L[j, 3], L[j, 4], L[j, 5]
-        t0 = x[3 * j] - (Y[j, 0, 0] * r0 + Y[j, 0, 1] * r1 + Y[j, 0, 2] * r2)
-        t1 = x[3 * j + 1] - (Y[j, 1, 0] * r0 + Y[j, 1, 1] * r1 + Y[j, 1, 2] * r2)
-        t2 = x[3 * j + 2] - (Y[j, 2, 0] * r0 + Y[j, 2, 1] * r1 + Y[j, 2, 2] * r2)
-        x2 = t2 / l22
-        x1 = (t1 - l21 * x2) / l11
-        x0 = (t0 - l10 * x1 - l20 * x2) / l00
-        x[3 * j] = x0
-        x[3 * j + 1] = x1
-        x[3 * j + 2] = x2
-        r0 += v[j, 0, 0] * x0 + v[j, 1, 0] * x1 + v[j, 2, 0] * x2
-        r1 += v[j, 0, 1] * x0 + v[j, 1, 1] * x1 + v[j, 2, 1] * x2
-        r2 += v[j, 0, 2] * x0 + v[j, 1, 2] * x1 + v[j, 2, 2] * x2
-
-
-@njit(cache=True, error_model="numpy")
-def _matvec(u, v, d, N, x, y):
-    """y = A x: y_j = d_j x_j + v_j sum_{k<j} u_k^T x_k + u_j sum_{k>j} v_k^T x_k."""
-    p0 = p1 = p2 = 0.0
-    for j in range(N):
-        x0, x1, x2 = x[3 * j], x[3 * j + 1], x[3 * j + 2]
-        for a in range(3):
-            y[3 * j + a] = (d[j, a, 0] * x0 + d[j, a, 1] * x1 + d[j, a, 2] * x2
-                            + v[j, a, 0] * p0 + v[j, a, 1] * p1 + v[j, a, 2] * p2)
-        p0 += u[j, 0, 0] * x0 + u[j, 1, 0] * x1 + u[j, 2, 0] * x2
-        p1 += u[j, 0, 1] * x0 + u[j, 1, 1] * x1 + u[j, 2, 1] * x2
-        p2 += u[j, 0, 2] * x0 + u[j, 1, 2] * x1 + u[j, 2, 2] * x2
-    q0 = q1 = q2 = 0.0
-    for j in range(N - 1, -1, -1):
-        x0, x1, x2 = x[3 * j], x[3 * j + 1], x[3 * j + 2]
-        for a in range(3):
-            y[3 * j + a] += u[j, a, 0] * q0 + u[j, a, 1] * q1 + u[j, a, 2] * q2
-        q0 += v[j, 0, 0] * x0 + v[j, 1, 0] * x1 + v[j, 2, 0] * x2
-        q1 += v[j, 0, 1] * x0 + v[j, 1, 1] * x1 + v[j, 2, 1] * x2
-        q2 += v[j, 0, 2] * x0 + v[j, 1, 2] * x1 + v[j, 2, 2] * x2
+@njit(cache=True)
+def _solve(neg_later, L, W, N, b, x):
+    """x = (sigma I - A)^-1 b with the factor of :func:`_cholesky`."""
+    x[:] = b
+    ss.solve_strand(L, W, neg_later, 0, N, x)
 
 
 @njit(cache=True, error_model="numpy")
@@ -263,9 +191,9 @@ def _frobenius(u, v, d, N):
 
 
 @njit(cache=True, error_model="numpy")
-def _rayleigh(u, v, d, N, x, Ax):
+def _rayleigh(d, later, earlier, N, x, Ax):
     """theta = x^T A x / x^T x, with Ax = A x."""
-    _matvec(u, v, d, N, x, Ax)
+    ss.matvec_strand(d, later, earlier, 0, N, x, Ax)
     num = 0.0
     den = 0.0
     for i in range(3 * N):
@@ -332,7 +260,7 @@ def _tridiagonal_top(alpha, beta, kk, sv):
 
 
 @njit(cache=True, error_model="numpy")
-def _lanczos(u, v, d, N, m, x):
+def _lanczos(d, later, earlier, N, m, x):
     """m Lanczos steps from a fixed start: returns the largest Ritz value and its residual bound
     |beta_m s_m|, its Ritz vector in x (a starting point only: nothing relies on its accuracy)."""
     n = 3 * N
@@ -350,7 +278,7 @@ def _lanczos(u, v, d, N, m, x):
         Q[0, i] *= nrm
     kk = m
     for k in range(m):
-        _matvec(u, v, d, N, Q[k], w)
+        ss.matvec_strand(d, later, earlier, 0, N, Q[k], w)
         a = 0.0
         for i in range(n):
             a += w[i] * Q[k, i]
@@ -390,21 +318,23 @@ def _lambda_max(u, v, d, N, rtol, atol_eps, max_steps, lanczos_steps):
     if norm == 0.0:
         return 0.0, True
     atol = atol_eps * 2.220446049250313e-16 * norm
-    L = np.empty((N, 6))
+    later, earlier, neg_later = _semiseparable_form(u, v, N)
+    diag = np.empty((N, 3, 3))
+    L = np.empty((N, 3, 3))
     Y = np.empty((N, 3, 3))
-    L2 = np.empty((N, 6))
+    L2 = np.empty((N, 3, 3))
     Y2 = np.empty((N, 3, 3))
     x = np.empty(n)
     y = np.empty(n)
     Ax = np.empty(n)
-    _, resid = _lanczos(u, v, d, N, lanczos_steps, x)
-    theta = _rayleigh(u, v, d, N, x, Ax)
+    _, resid = _lanczos(d, later, earlier, N, lanczos_steps, x)
+    theta = _rayleigh(d, later, earlier, N, x, Ax)
     # a first shift above lambda_max: theta + w, w growing until the Cholesky succeeds (at most ||A||_F)
     cap = norm * (1.0 + 1e-8) + atol
     w = max(2.0 * resid, 1e-6 * abs(theta), atol)
     hi = min(theta + w, cap)
     steps = 0
-    while not _cholesky(u, v, d, N, hi, L, Y):
+    while not _cholesky(d, neg_later, earlier, N, hi, diag, L, Y):
         steps += 1
         if hi >= cap or steps > max_steps:
             return theta, False
@@ -414,14 +344,14 @@ def _lambda_max(u, v, d, N, rtol, atol_eps, max_steps, lanczos_steps):
     fails = 0  # Cholesky failures in a row just above theta: round-off, widen the step
     for _ in range(max_steps):
         # inverse iteration with the certified shift hi
-        _solve(v, L, Y, N, x, y)
+        _solve(neg_later, L, Y, N, x, y)
         s = 0.0
         for i in range(n):
             s += y[i] * y[i]
         s = 1.0 / np.sqrt(s)
         for i in range(n):
             x[i] = y[i] * s
-        t = _rayleigh(u, v, d, N, x, Ax)
+        t = _rayleigh(d, later, earlier, N, x, Ax)
         step = t - prev
         prev = t
         theta = max(theta, t)
@@ -431,7 +361,7 @@ def _lambda_max(u, v, d, N, rtol, atol_eps, max_steps, lanczos_steps):
         # a tighter shift just above the extrapolated limit of theta
         cand = theta + max(tol, 2.0 * abs(step)) * 4.0 ** fails
         if cand < hi:
-            if _cholesky(u, v, d, N, cand, L2, Y2):
+            if _cholesky(d, neg_later, earlier, N, cand, diag, L2, Y2):
                 hi = cand
                 L, L2 = L2, L
                 Y, Y2 = Y2, Y
