@@ -80,11 +80,11 @@ def test_kernels_match_the_dense_matrix(seed, scale):
     u, v, d, N = generators(helix, 0)
     assert np.array_equal(stability._dense(u, v, d, N), stability._dense(u, v, d, N).T)
     assert np.abs(stability._dense(u, v, d, N) - A).max() <= 1e-13 * np.abs(A).max()
-    assert stability._frobenius(u, v, d, N) == pytest.approx(np.linalg.norm(A), rel=1e-12)
+    later, earlier, neg_later = stability._semiseparable_form(u, v, N)
+    assert stability._frobenius(d, later, earlier, N) == pytest.approx(np.linalg.norm(A), rel=1e-12)
     rng = np.random.default_rng(seed)
     x = rng.normal(size=3 * N)
     y = np.empty(3 * N)
-    later, earlier, neg_later = stability._semiseparable_form(u, v, N)
     semiseparable.matvec_strand(d, later, earlier, 0, N, x, y)
     assert np.abs(y - A @ x).max() <= 1e-12 * np.abs(A).max() * np.abs(x).sum()
     lam = np.linalg.eigvalsh(A)
@@ -150,13 +150,13 @@ def test_certified_value_is_pinned_by_the_cholesky_test():
     certified gap of the dense eigenvalue, and just below it the Cholesky fails."""
     helix = random_helix(5, n_strands=1, max_elements=20, ragged=False)
     u, v, d, N = generators(helix, 0)
-    theta, ok = stability._lambda_max(u, v, d, N, stability.RTOL, stability.ATOL_EPS, 60, 12)
+    later, earlier, neg_later = stability._semiseparable_form(u, v, N)
+    theta, ok = stability._lambda_max(d, later, earlier, N, stability.RTOL, stability.ATOL_EPS, 60, 12)
     A = dense_A(helix, 0)
     lam = np.linalg.eigvalsh(A)[-1]
     assert ok
     tol = stability.RTOL * abs(theta) + stability.ATOL_EPS * EPS * np.linalg.norm(A)
     assert lam - 2 * tol <= theta <= lam + 64 * EPS * np.linalg.norm(A)
-    later, earlier, neg_later = stability._semiseparable_form(u, v, N)
     diag, L, Y = np.empty((N, 3, 3)), np.empty((N, 3, 3)), np.empty((N, 3, 3))
     assert not stability._cholesky(d, neg_later, earlier, N, theta - 1e-8 * abs(theta), diag, L, Y)
     assert stability._cholesky(d, neg_later, earlier, N, theta + tol, diag, L, Y)
@@ -197,9 +197,56 @@ def test_constrained_top_eigenvalue_equals_the_null_space_route():
             Z = scipy.linalg.null_space(C)
             ref = np.linalg.eigvalsh(Z.T @ A @ Z)[-1] if Z.shape[1] else 0.0
         assert_ratios_close([new], [ref], [3 * np.linalg.norm(A)])
+        u, v, d, N = generators(helix, s)
+        later, earlier, _ = stability._semiseparable_form(u, v, N)
+        fast, certified = stability.held_top_eigenvalue(d, later, earlier, C)
+        assert certified
+        assert_ratios_close([fast], [ref], [3 * np.linalg.norm(A)])
     iso = stiffness_ratios(helix, MAT.stiffness_diag, MAT.linear_density, G)
     assert stability.constrained_top_eigenvalue(dense_A(helix, 0), None) == pytest.approx(iso[0], rel=1e-9)
     assert stability.constrained_top_eigenvalue(dense_A(helix, 1), cases[4][1]) == 0.0
+
+
+@given(seed=st.integers(0, 10_000), scale=st.sampled_from([0.0, 3.0, 40.0]), k=st.integers(1, 12),
+       contact_rows=st.booleans())
+@settings(max_examples=40, deadline=None)
+def test_held_top_eigenvalue_equals_the_dense_null_space_route(seed, scale, k, contact_rows):
+    """The O(N k^2) route (P A P - beta Q^T Q in semiseparable form) against scipy's null space + eigvalsh, for the
+    rows of head contacts (rigid upstream of the contact, as H's) and for arbitrary dense rows, rank-deficient
+    ones included."""
+    import scipy.linalg
+
+    helix = random_helix(seed, n_strands=1, max_elements=int(seed % 14) + 1, scale=scale, ragged=False)
+    u, v, d, N = generators(helix, 0)
+    A = dense_A(helix, 0)
+    rng = np.random.default_rng(seed)
+    if contact_rows:
+        arcs = rng.uniform(0, 1, max(1, k // 3)) * helix.strand_lengths[0]
+        C = _blocked_rows(helix, 0, arcs, seed)[:k]
+        C = C / np.sqrt(sh.stiffness(helix.subset([0]), MAT.stiffness_diag).reshape(-1))[None, :3 * N]
+    else:
+        C = rng.normal(size=(k, 3 * N))
+        if k > 2:
+            C[-1] = C[0] - 2.0 * C[1]  # rank deficient
+    Z = scipy.linalg.null_space(C)
+    ref = np.linalg.eigvalsh(Z.T @ A @ Z)[-1] if Z.shape[1] else 0.0
+    later, earlier, _ = stability._semiseparable_form(u, v, N)
+    fast, certified = stability.held_top_eigenvalue(d, later, earlier, C)
+    assert certified
+    assert_ratios_close([fast], [ref], [3 * np.linalg.norm(A)])
+
+
+def test_projected_form_is_p_a_p_minus_beta_q_q():
+    helix = random_helix(7, n_strands=1, max_elements=9, scale=3.0, ragged=False)
+    u, v, d, N = generators(helix, 0)
+    A = dense_A(helix, 0)
+    Q = np.linalg.qr(np.random.default_rng(1).normal(size=(3 * N, 4)))[0].T.copy()
+    later, earlier, _ = stability._semiseparable_form(u, v, N)
+    d_b, later_b, earlier_b = stability._projected_form(d, later, earlier, N, Q, 2.5)
+    P = np.eye(3 * N) - Q.T @ Q
+    B = P @ A @ P - 2.5 * Q.T @ Q
+    from reference.semiseparable import dense_strand
+    assert np.abs(dense_strand(d_b, later_b, earlier_b, 0, N) - B).max() <= 1e-13 * np.abs(A).max()
 
 
 # --------------------------------------------------------------------------- equilibrium check

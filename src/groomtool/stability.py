@@ -171,22 +171,24 @@ def _solve(neg_later, L, W, N, b, x):
 
 
 @njit(cache=True, error_model="numpy")
-def _frobenius(u, v, d, N):
-    """||A||_F = sqrt(sum_j |d_j|^2 + 2 sum_{j<k} <u_j^T u_j, v_k^T v_k>)."""
+def _frobenius(d, later, earlier, N):
+    """||A||_F = sqrt(sum_j |d_j|^2 + 2 sum_j <earlier_j earlier_j^T, sum_{k>j} later_k later_k^T>) (the lower blocks
+    later_k^T earlier_j, k > j, counted twice)."""
+    r = later.shape[1]
     acc = 0.0
     for j in range(N):
         for a in range(3):
             for b in range(3):
                 acc += d[j, a, b] * d[j, a, b]
-    suffix = np.zeros((3, 3))
+    suffix = np.zeros((r, r))
     for j in range(N - 1, -1, -1):
-        for a in range(3):
-            for b in range(3):
-                uu = u[j, 0, a] * u[j, 0, b] + u[j, 1, a] * u[j, 1, b] + u[j, 2, a] * u[j, 2, b]
-                acc += 2.0 * uu * suffix[a, b]
-        for a in range(3):
-            for b in range(3):
-                suffix[a, b] += v[j, 0, a] * v[j, 0, b] + v[j, 1, a] * v[j, 1, b] + v[j, 2, a] * v[j, 2, b]
+        for a in range(r):
+            for b in range(r):
+                ee = earlier[j, a, 0] * earlier[j, b, 0] + earlier[j, a, 1] * earlier[j, b, 1] + earlier[j, a, 2] * earlier[j, b, 2]
+                acc += 2.0 * ee * suffix[a, b]
+        for a in range(r):
+            for b in range(r):
+                suffix[a, b] += later[j, a, 0] * later[j, b, 0] + later[j, a, 1] * later[j, b, 1] + later[j, a, 2] * later[j, b, 2]
     return np.sqrt(max(acc, 0.0))
 
 
@@ -308,22 +310,23 @@ def _lanczos(d, later, earlier, N, m, x):
 
 
 @njit(cache=True, error_model="numpy")
-def _lambda_max(u, v, d, N, rtol, atol_eps, max_steps, lanczos_steps):
-    """(lambda_max(A), certified) for one strand: theta is a Rayleigh quotient (theta <= lambda_max) and a
-    Cholesky of (theta + tol) I - A succeeded (lambda_max <= theta + tol); see the module docstring."""
+def _lambda_max(d, later, earlier, N, rtol, atol_eps, max_steps, lanczos_steps):
+    """(lambda_max(A), certified) for one strand's A (semiseparable form: diagonal blocks d, lower blocks
+    later_k^T earlier_j): theta is a Rayleigh quotient (theta <= lambda_max) and a Cholesky of
+    (theta + tol) I - A succeeded (lambda_max <= theta + tol); see the module docstring."""
     n = 3 * N
     if N == 0:
         return 0.0, True
-    norm = _frobenius(u, v, d, N)
+    norm = _frobenius(d, later, earlier, N)
     if norm == 0.0:
         return 0.0, True
     atol = atol_eps * 2.220446049250313e-16 * norm
-    later, earlier, neg_later = _semiseparable_form(u, v, N)
+    neg_later = -later
     diag = np.empty((N, 3, 3))
     L = np.empty((N, 3, 3))
-    Y = np.empty((N, 3, 3))
+    Y = np.empty((N, later.shape[1], 3))
     L2 = np.empty((N, 3, 3))
-    Y2 = np.empty((N, 3, 3))
+    Y2 = np.empty((N, later.shape[1], 3))
     x = np.empty(n)
     y = np.empty(n)
     Ax = np.empty(n)
@@ -379,7 +382,70 @@ def _lambda_max(u, v, d, N, rtol, atol_eps, max_steps, lanczos_steps):
 def _lambda_max_batch(u, v, d, n_elements, rtol, atol_eps, max_steps, lanczos_steps, out, ok):
     for s in range(u.shape[0]):
         N = n_elements[s]
-        out[s], ok[s] = _lambda_max(u[s, :N], v[s, :N], d[s, :N], N, rtol, atol_eps, max_steps, lanczos_steps)
+        later, earlier, _ = _semiseparable_form(u[s, :N], v[s, :N], N)
+        out[s], ok[s] = _lambda_max(d[s, :N], later, earlier, N, rtol, atol_eps, max_steps, lanczos_steps)
+
+
+@njit(cache=True, error_model="numpy")
+def _projected_form(d, later, earlier, N, Q, beta):
+    """The semiseparable form of B = P A P - beta Q^T Q, P = I - Q^T Q (Q: k orthonormal rows):
+
+        B = A - (Q^T Z^T + Z Q),   Z = A Q^T - Q^T (Q A Q^T - beta I) / 2   (n x k),
+
+    so B's lower blocks take 2 k more generator rows (-q_i, -z_i in later; z_i, q_i in earlier) and its diagonal
+    blocks d_j - sum_i (q_ij z_ij^T + z_ij q_ij^T).  B is Z^T A Z on null(Q) and -beta I on its complement, so
+    lambda_max(B) = lambda_max(A on null(Q)) when beta exceeds |lambda| of A's restriction."""
+    n = 3 * N
+    k = Q.shape[0]
+    r = later.shape[1]
+    AQ = np.empty((n, k))
+    col = np.empty(n)
+    for i in range(k):
+        ss.matvec_strand(d, later, earlier, 0, N, Q[i], col)
+        AQ[:, i] = col
+    T = Q @ AQ
+    for i in range(k):
+        T[i, i] -= beta
+    Z = AQ - 0.5 * (Q.T @ T)
+    later_b = np.empty((N, r + 2 * k, 3))
+    earlier_b = np.empty((N, r + 2 * k, 3))
+    d_b = np.empty((N, 3, 3))
+    for j in range(N):
+        for c in range(3):
+            for a in range(r):
+                later_b[j, a, c] = later[j, a, c]
+                earlier_b[j, a, c] = earlier[j, a, c]
+            for i in range(k):
+                later_b[j, r + i, c] = -Q[i, 3 * j + c]
+                later_b[j, r + k + i, c] = -Z[3 * j + c, i]
+                earlier_b[j, r + i, c] = Z[3 * j + c, i]
+                earlier_b[j, r + k + i, c] = Q[i, 3 * j + c]
+            for e in range(3):
+                acc = d[j, c, e]
+                for i in range(k):
+                    acc -= Q[i, 3 * j + c] * Z[3 * j + e, i] + Z[3 * j + c, i] * Q[i, 3 * j + e]
+                d_b[j, c, e] = acc
+    return d_b, later_b, earlier_b
+
+
+def held_top_eigenvalue(d, later, earlier, C: np.ndarray | None) -> tuple[float, bool]:
+    """(lambda_max of A on null(C), certified) in O(N k^2) for one Super-Helix strand, A in semiseparable form
+    (diagonal blocks d (N, 3, 3), lower blocks later_k^T earlier_j): the certified lambda_max of
+    B = P A P - beta Q^T Q (:func:`_projected_form`; Q the orthonormal rows of C's row space by
+    :func:`constrained_top_eigenvalue`'s rank rule, beta = 2 ||A||_F + 1).  0 when the rows block every motion."""
+    N = len(d)
+    d = np.ascontiguousarray(d, dtype=np.float64)
+    later = np.ascontiguousarray(later, dtype=np.float64)
+    earlier = np.ascontiguousarray(earlier, dtype=np.float64)
+    if C is not None and len(C):
+        _, sv, Vh = np.linalg.svd(C, full_matrices=False)
+        rank = int(np.count_nonzero(sv > (sv.max() if len(sv) else 0.0) * np.finfo(float).eps * max(C.shape)))
+        if rank >= 3 * N:
+            return 0.0, True
+        if rank:
+            beta = 2.0 * _frobenius(d, later, earlier, N) + 1.0
+            d, later, earlier = _projected_form(d, later, earlier, N, np.ascontiguousarray(Vh[:rank]), beta)
+    return _lambda_max(d, later, earlier, N, RTOL, ATOL_EPS, MAX_STEPS, LANCZOS_STEPS)
 
 
 def _csr_block(H, rows, c0, c1) -> np.ndarray:
@@ -563,7 +629,9 @@ def held_stiffness_ratios(helix: sh.SuperHelix, stiffness_diag, linear_density: 
       groom stable with every loaded contact sticking.
 
     Strands that no loaded contact touches keep their isolated ratio (``isolated_ratios`` or computed).
-    Dense per strand (n = 3 N_s <= a few hundred): eigvalsh of the reduced matrix."""
+    Super-Helices in O(N k^2) per strand (k blocking rows): certified as the isolated ratios are, on
+    P A P - beta Q^T Q (:func:`held_top_eigenvalue`); clothoids, and a strand not certified, by the dense
+    eigvalsh of the reduced matrix (:func:`constrained_top_eigenvalue`)."""
     S = helix.n_strands
     forces = np.asarray(forces, dtype=np.float64).reshape(-1, 3)
     mu = np.broadcast_to(np.asarray(mu, dtype=np.float64), (len(forces),))
@@ -646,7 +714,6 @@ def held_stiffness_ratios(helix: sh.SuperHelix, stiffness_diag, linear_density: 
                 else:
                     n = 3 * int(sub.n_elements[i])
                     scale = sc[i, :n // 3].reshape(-1)
-                    A = _assemble_one(U, A_gen, diag, i, n // 3)  # symmetric exactly
                 rows = [3 * c + np.arange(3) if stick else np.array([3 * c])
                         for c, stick in zip(head_ids[lo:hi], head_stick[lo:hi])]
                 C = None
@@ -655,7 +722,14 @@ def held_stiffness_ratios(helix: sh.SuperHelix, stiffness_diag, linear_density: 
                     C = _csr_block(H, rows, cols[s], cols[s] + n)
                     C = C @ Wm if clothoid else C * scale[None, :]
                     blocked_count[s] = len(rows)
-                ratio[s] = constrained_top_eigenvalue(A, C)
+                if clothoid:
+                    ratio[s] = constrained_top_eigenvalue(A, C)
+                else:  # O(N k^2) on the null space of the blocking rows, the dense route where not certified
+                    Ni = n // 3
+                    later, earlier, _ = _semiseparable_form(U[i, :Ni], np.ascontiguousarray(np.swapaxes(A_gen[i, :Ni], -1, -2)),
+                                                            Ni)
+                    lam, certified = held_top_eigenvalue(diag[i, :Ni], later, earlier, C)
+                    ratio[s] = lam if certified else constrained_top_eigenvalue(_assemble_one(U, A_gen, diag, i, Ni), C)
                 if progress is not None:
                     progress.update(1)
             if free:
