@@ -354,17 +354,38 @@ def rest_curvature_error_bound(problem: InverseProblem, cp, r, u=None, line_sear
             "q0_bound_source": source}
 
 
-def solver_method(cp, params, redundant_fraction: float = 1.0) -> str:
+def admm_geometry(helix, contacts, kin=None):
+    """What the strand-split ADMM needs besides the ContactProblem to solve its strand systems in O(elements)
+    (solvers.admm_structured.HelixContacts: the Super-Helix groom, the contacts H was built from, the kinematics), or
+    None for a Super Space Clothoid (dense D blocks: the dense strand factors) or without contacts."""
+    if contacts is None or isinstance(helix, cl.SuperClothoid):
+        return None
+    from .solvers.admm_structured import HelixContacts  # the solvers: kept off the CLI's start
+
+    return HelixContacts(helix, contacts, kin)
+
+
+def solver_method(cp, params, redundant_fraction: float = 1.0, geometry=None) -> str:
     """The solver solve_inverse_problem runs on the ContactProblem ``cp`` (params.solver; ``auto``: choose_solver, then
-    on dense contacts beyond 10,000 the strand-split ADMM where it fits, solver_choice.dense_iterative_method)."""
+    on dense contacts beyond 10,000 the strand-split ADMM where it fits, solver_choice.dense_iterative_method;
+    ``geometry``: admm_geometry's, the structured strand factors' memory counted instead of dense ones)."""
     method = choose_solver(params.solver, cp.n_contacts, redundant_fraction)
     if params.solver == "auto" and method == "gs":  # dense contacts beyond clarabel's reach: the strand-split ADMM
-        method = dense_iterative_method(cp, redundant_fraction)
+        method = dense_iterative_method(cp, redundant_fraction, structured=_structured(cp, geometry))
     return method
 
 
+def _structured(cp, geometry) -> bool:
+    if geometry is None:
+        return False
+    from .solvers.admm_structured import applies  # the solvers: kept off the CLI's start
+
+    return applies(cp, geometry)
+
+
 def solve_inverse_problem(problem: InverseProblem, helix: sh.SuperHelix, params, quiet: bool = True,
-                          redundant_fraction: float = 1.0, initial_forces=None, initial_state=None, cp=None) -> dict:
+                          redundant_fraction: float = 1.0, initial_forces=None, initial_state=None, cp=None,
+                          geometry=None) -> dict:
     """Solve the scaled SOCQP with the chosen solver; forces returned in newtons (m, 3).  ``params``: the
     InversionParams (solver, solver_tolerance, max_sweeps, q0_tolerance).  The progress bar counts
     Gauss-Seidel sweeps (clarabel's polish included; ADMM iterations) and shows the residual.  ``auto``: choose_solver,
@@ -375,14 +396,16 @@ def solve_inverse_problem(problem: InverseProblem, helix: sh.SuperHelix, params,
     ``admm_state`` (opaque; None for the other solvers); given back as ``initial_state`` on a problem with the same
     contacts (the same H: another K, as after stiffening), ADMM starts from it instead of ``initial_forces`` (its
     multipliers carried over, rescaled for the new K: admm.ADMMState); the other solvers ignore it.  ``cp``: the
-    problem's ContactProblem when the caller built it already (problem.contact_problem(helix))."""
+    problem's ContactProblem when the caller built it already (problem.contact_problem(helix)).  ``geometry``
+    (admm_geometry(helix, contacts, kin)): ADMM solves its strand systems through their semiseparable factors
+    (solvers/admm_structured.py, O(elements + ends) per iteration instead of O(n_s^2) per strand)."""
     from .solvers import solve_contact_problem  # the solvers (clarabel, 0.3 s): kept off the CLI's start
     from .solvers.gauss_seidel import GIVE_UP_MIN_SWEEPS, give_up_projection, projected_sweeps
 
     if cp is None:
         cp = problem.contact_problem(helix)
     m = len(problem.mu)
-    method = solver_method(cp, params, redundant_fraction)
+    method = solver_method(cp, params, redundant_fraction, geometry)
     bounded = problem.gamma > 0 and problem.q0_free is not None
     gave_up = {}  # ADMM: the projection of its q0 bound that stopped it (give_up_projection on the bound's history)
     admm_state = {}  # ADMM: its end state ("state"), for a later solve's initial_state
@@ -445,6 +468,8 @@ def solve_inverse_problem(problem: InverseProblem, helix: sh.SuperHelix, params,
                 gs_only["state_out"] = admm_state
                 if initial_state is not None:
                     gs_only["initial_state"] = initial_state
+                if geometry is not None:
+                    gs_only["geometry"] = geometry
             if method != "clarabel" and bounded and (params.q0_tolerance is not None or not quiet):
                 gs_only["stop"] = stop
             return solve_contact_problem(cp, law="soc", method=method, tol=params.solver_tolerance, callback=show,

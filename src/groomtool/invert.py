@@ -17,7 +17,7 @@ import numpy as np
 from .fit import fit_groom
 from .fit.fitter import DEFAULT_TOLERANCE_M
 from .groom import Groom, GroomError
-from .inverse_problem import (MODELS, build_inverse_problem, cone_violation, equilibrium_residuals,
+from .inverse_problem import (MODELS, admm_geometry, build_inverse_problem, cone_violation, equilibrium_residuals,
                               isolated_rest_curvatures, model_name, rest_curvatures_with_contacts, rod_module,
                               solve_inverse_problem, solver_method, strand_stiffness)
 from .deprecation import rename_field
@@ -241,7 +241,7 @@ def invert_groom(groom: Groom, head=None, params: InversionParams | None = None,
         report["fit"]["helix_elements"] = fit.settings["helix_elements"]  # the Super-Helix fit it started from
         report["fit"]["nodes"] = int((helix.n_elements + 1).sum())
 
-    contacts = H = F = None
+    contacts = H = F = kin = None
     forces = np.zeros((0, 3))
     mu = np.zeros(0)
     if params.contacts != "none":
@@ -296,12 +296,14 @@ def invert_groom(groom: Groom, head=None, params: InversionParams | None = None,
                 # a re-solve after stiffening starts from the previous round's forces (Gauss-Seidel) or the
                 # previous round's whole state (the strand-split ADMM: its multipliers too, rescaled for the new K)
                 cp = problem.contact_problem(helix)
-                if loose is not None and not history and solver_method(cp, params, redundant) != "admm":
+                geometry = admm_geometry(helix, contacts, kin)  # ADMM's strand systems in O(elements)
+                if loose is not None and not history and solver_method(cp, params, redundant, geometry) != "admm":
                     loose = None  # only the strand-split ADMM carries its whole state into the next round
                     round_params = params
                 solve = solve_inverse_problem(problem, helix, round_params, quiet, redundant,
                                               initial_forces=forces if history else None,
-                                              initial_state=admm_state if history else None, cp=cp)
+                                              initial_state=admm_state if history else None, cp=cp,
+                                              geometry=geometry)
                 del cp
             forces, admm_state = solve["forces"], solve.pop("admm_state", None)
             report["solve"] = {k: v for k, v in solve.items() if k != "forces"}

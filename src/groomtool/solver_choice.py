@@ -57,15 +57,15 @@ def choose_solver(solver: str, n_contacts: int, redundant_fraction: float = 1.0)
 
 
 
-def dense_iterative_method(problem, redundant_fraction: float) -> str:
+def dense_iterative_method(problem, redundant_fraction: float, structured: bool = False) -> str:
     """The iterative method for ``auto`` once choose_solver has picked the iterative family ("gs"): the
     strand-split ADMM (solvers/admm.py) on dense contacts (more than AUTO_GS_MAX_REDUNDANT of the contact-carrying
-    strands redundant) when its memory (solvers.admm.strand_split_bytes of the ContactProblem) fits
-    ADMM_MEMORY_CAP, else Gauss-Seidel.  Measured on example_groom(1000) with all contacts (67,805, 100 %
+    strands redundant) when its memory (solvers.admm.strand_split_bytes of the ContactProblem; ``structured``: with
+    the Super-Helix geometry, its semiseparable strand factors) fits ADMM_MEMORY_CAP, else Gauss-Seidel.  Measured on example_groom(1000) with all contacts (67,805, 100 %
     redundant): the certified rest-curvature bound 1e-3 in ~50 s CPU, where Gauss-Seidel is at 4.3e-2 after 60 s
     and every Gauss-Seidel / APGD option tried stays above 3e-3 after 90 s (docs/solvers.md section 12)."""
     if redundant_fraction <= AUTO_GS_MAX_REDUNDANT:
         return "gs"
     from .solvers.admm import strand_split_bytes  # the solvers: kept off the CLI's start
 
-    return "admm" if strand_split_bytes(problem) <= ADMM_MEMORY_CAP else "gs"
+    return "admm" if strand_split_bytes(problem, structured=structured) <= ADMM_MEMORY_CAP else "gs"

@@ -41,6 +41,7 @@ import numpy as np
 from numba import njit
 
 from . import residual as _res
+from .admm_structured import HelixContacts, StructuredSplit, applies
 from .anderson import AndersonMixer
 from .blocks import symmetrize_add_diagonal
 from .cones import SOC, project_cone
@@ -408,6 +409,35 @@ def _same_array(a, b) -> bool:
     return bool(np.array_equal(a, b))
 
 
+def same_H(H_source, problem, dof_offsets) -> bool:
+    """Whether ``problem``'s H is the one H_source = (indptr, indices, data, shape) was taken from (the same arrays,
+    or equal ones) on the same strands (dof_offsets)."""
+    H = problem.H
+    indptr, indices, data, shape = H_source
+    return (H.shape == shape and problem.n_strands == len(dof_offsets) - 1
+            and _same_array(np.asarray(problem.dof_offsets, dtype=np.int64), np.asarray(dof_offsets, dtype=np.int64))
+            and _same_array(H.indptr, indptr) and _same_array(H.indices, indices) and _same_array(H.data, data))
+
+
+def contact_ratios(old_D_data, problem, cend_ptr, end_strand):
+    """(g (S,), g_contact (m,)): g_s with D'_s = g_s D_s to round-off (RATIO_RTOL; NaN where there is none, D' the
+    problem's, D laid out alike in old_D_data) and per contact its strands' common g (NaN where they differ)."""
+    g = np.empty(problem.n_strands)
+    _strand_ratios(old_D_data, problem.D_data, problem.D_ptr, RATIO_RTOL, g)
+    gc = np.empty(problem.n_contacts)
+    _carried(cend_ptr, end_strand, g, RATIO_RTOL, gc)
+    return g, gc
+
+
+def carried_rho(gc, previous_rho, diag, beta):
+    """(rho', kept): rho'_i = g_i rho_i (g_i: contact_ratios) where that is within RHO_RTOL of the rule's
+    beta tr(W'_ii) / 3 (diag: W'_ii), else the rule's; kept marks the former."""
+    fresh = contact_rho(diag, beta)
+    carried = gc * previous_rho
+    kept = (gc > 0.0) & (np.abs(carried - fresh) <= RHO_RTOL * fresh)
+    return np.ascontiguousarray(np.where(kept, carried, fresh)), kept
+
+
 class StrandSplit:
     """The ends of a ContactProblem's contacts and the Cholesky factors of M_s = D_s^-1 + J_s^T J_s / rho, for a
     per-contact rho (fixed for the whole run).  Strand s's factor is L_scale[s] times its block of L (L_scale = 1
@@ -485,11 +515,7 @@ class StrandSplit:
 
     def same_H(self, problem) -> bool:
         """Whether ``problem`` has this split's H (the same columns and values: its ends and packed H hold)."""
-        H = problem.H
-        indptr, indices, data, shape = self.H_source
-        return (H.shape == shape and problem.n_strands == len(self.strand_ptr) - 1
-                and _same_array(np.asarray(problem.dof_offsets, dtype=np.int64), self.off)
-                and _same_array(H.indptr, indptr) and _same_array(H.indices, indices) and _same_array(H.data, data))
+        return same_H(self.H_source, problem, self.off)
 
     def detached(self) -> "StrandSplit":
         """A copy sharing every array but not the problem (for ADMMState: the problem's caches are not kept)."""
@@ -519,10 +545,7 @@ class StrandSplit:
         cache.setdefault("packed_H", previous.H)
         out._attach(problem)
         S, m = problem.n_strands, problem.n_contacts
-        g = np.empty(S)
-        _strand_ratios(previous.D_data, problem.D_data, problem.D_ptr, RATIO_RTOL, g)
-        gc = np.empty(m)
-        _carried(out.cend_ptr, out.end_strand, g, RATIO_RTOL, gc)
+        g, gc = contact_ratios(previous.D_data, problem, out.cend_ptr, out.end_strand)
         kept = gc > 0.0
         eye = np.eye(3)
         if "diag" in cache:
@@ -536,10 +559,7 @@ class StrandSplit:
                               2.0 * problem.gamma, diag)
             cache["diag"] = diag
         out.diag = diag
-        fresh = contact_rho(diag, beta)
-        carried = gc * previous.rho_c
-        kept &= np.abs(carried - fresh) <= RHO_RTOL * fresh
-        out.rho_c = np.ascontiguousarray(np.where(kept, carried, fresh))
+        out.rho_c, kept = carried_rho(gc, previous.rho_c, diag, beta)
         out.rho_end = np.ascontiguousarray(out.rho_c[out.end_contact])
         reuse = np.empty(S, dtype=np.bool_)
         _reusable(out.strand_ptr, out.ends_sorted, out.end_contact, g, np.where(kept, gc, np.nan), reuse)
@@ -574,6 +594,21 @@ class StrandSplit:
         return out
 
 
+def _reusing_structured(problem, previous: StructuredSplit, beta: float):
+    """The structured split of ``problem`` from an earlier run's on the same H (StructuredSplit.rebind), with rho
+    carried over as StrandSplit.reusing does (carried_rho) and every strand refactored (O(elements) here), or None
+    when H, beta or a diagonal D are not there."""
+    if (previous.beta != beta or not np.all(problem.D_is_diag)
+            or not same_H(previous.H_source, problem, 3 * previous.offsets)):
+        return None
+    out = previous.rebind(problem)
+    _, gc = contact_ratios(previous.D_data, problem, out.cend_ptr, out.end_strand)
+    out.beta = beta
+    out.set_rho(carried_rho(gc, previous.rho_c, out.diag, beta)[0])
+    problem._cache.setdefault("diag", out.diag)
+    return out
+
+
 def contact_rho(diag: np.ndarray, beta: float = BETA) -> np.ndarray:
     """rho_i = beta tr(W_ii) / 3 per contact (1 where that is not positive)."""
     rho_c = beta * np.einsum("kii->k", diag) / 3.0
@@ -595,16 +630,20 @@ def _used_strands(indices, dof_offsets, out):
                 break
 
 
-def strand_split_bytes(problem, anderson: int = ANDERSON) -> int:
+def strand_split_bytes(problem, anderson: int = ANDERSON, structured: bool = False) -> int:
     """Memory of run_admm on ``problem`` beyond the problem itself, estimated from H's columns alone: a dense
-    n_s x n_s factor per strand that carries a contact, and per contact end (at most the strands a contact's
-    columns touch, bounded by 2 per contact for strand/strand contacts) its indices, three state vectors and
-    the Anderson history (float32)."""
+    n_s x n_s factor per strand that carries a contact (``structured``: the semiseparable generators and factors
+    of admm_structured.StructuredSplit instead, 72 numbers per element, and ~50 numbers of geometry per end), and
+    per contact end (at most the strands a contact's columns touch, bounded by 2 per contact for strand/strand
+    contacts) its indices, three state vectors and the Anderson history (float32)."""
+    ends = 2 * problem.n_contacts
+    per_end = 4 * 8 + 5 * 3 * 8 + 2 * anderson * 3 * 4
+    if structured:
+        return int(8 * 72 * (problem.n_dofs // 3) + ends * (per_end + 8 * 50))
     used = np.zeros(problem.n_strands, dtype=np.bool_)
     _used_strands(problem.H.indices, np.ascontiguousarray(problem.dof_offsets, dtype=np.int64), used)
     sizes = np.diff(problem.dof_offsets)
-    ends = 2 * problem.n_contacts
-    return int(8 * np.sum(sizes[used].astype(np.int64) ** 2) + ends * (4 * 8 + 5 * 3 * 8 + 2 * anderson * 3 * 4))
+    return int(8 * np.sum(sizes[used].astype(np.int64) ** 2) + ends * per_end)
 
 
 def strand_traces(problem) -> np.ndarray:
@@ -694,6 +733,7 @@ def run_admm(
     stop_strands: bool = False,
     initial_state: ADMMState | None = None,
     state_out: dict | None = None,
+    geometry: HelixContacts | None = None,
 ) -> ADMMOutcome:
     """Strand-split ADMM (module docstring) on a ContactProblem, SOC law.  Starts from r0 (projected onto the
     cones) or, without one, from ``warm_sweeps`` Gauss-Seidel sweeps.  Every ``check_every`` iterations: the
@@ -705,7 +745,10 @@ def run_admm(
     ``initial_state``: a previous run's outcome.state (ADMMState) on a problem with the same H (another D and b):
     the run starts from it (r0 and the Gauss-Seidel sweeps are then not used; a state of other contacts is
     ignored).  ``state_out`` (a dict): gets the end state under "state" (for callers that reach run_admm through
-    solve_contact_problem, whose result does not carry it)."""
+    solve_contact_problem, whose result does not carry it).  ``geometry`` (admm_structured.HelixContacts: the
+    Super-Helix groom and the contacts H was built from): the strand systems are solved through their
+    semiseparable factors (admm_structured.StructuredSplit, O(elements + ends) per x-step) instead of dense
+    Cholesky factors, where D is diagonal (else, or without it, the dense StrandSplit)."""
     from .certificate import project_forces
 
     if not 0.0 < alpha < 2.0:
@@ -717,7 +760,13 @@ def run_admm(
     split = None
     if initial_state is not None and initial_state.split is not None:  # the previous run's set-up, on the same H
         previous, initial_state.split = initial_state.split, None
-        split = StrandSplit.reusing(problem, previous, beta)
+        split = (_reusing_structured(problem, previous, beta) if isinstance(previous, StructuredSplit)
+                 else StrandSplit.reusing(problem, previous, beta))
+    if split is None and applies(problem, geometry):
+        split = StructuredSplit(problem, geometry)
+        split.beta = beta
+        split.set_rho(contact_rho(split.diag, beta))
+        problem._cache.setdefault("diag", split.diag)  # W_ii without packing H (problem.rho() reads it)
     if split is None:
         diag = problem.diagonal_blocks()
         split = StrandSplit(problem, contact_rho(diag, beta))
