@@ -15,6 +15,9 @@ import scipy.sparse as sp
 from numba import njit
 from scipy.linalg import lapack
 
+from .rods.dynamics import MassGenerators
+from .semiseparable import factor_strand, matvec_strand, solve_lower_strand, solve_upper_strand
+
 
 def _cholesky(a: np.ndarray) -> np.ndarray | None:
     """Lower Cholesky factor of the symmetric positive definite ``a`` (LAPACK dpotrf), None if it is not."""
@@ -44,6 +47,7 @@ def modified_step_matrix(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 CHUNK_BYTES = 64 * 2**20  # the mass matrices of one chunk of strands (simulator)
+STEP_RANK = 6  # the rank of the step matrix's semiseparable generators (factor_step_generators)
 
 
 def strand_chunks(n_elements: np.ndarray, max_bytes: int = CHUNK_BYTES) -> list[tuple[int, int]]:
@@ -178,52 +182,167 @@ class StepCorrections:
 
 
 class StrandFactors:
-    """Cholesky factors of every strand's step matrix on its n_s = 3 N_s real dofs, stored back to back
-    as packed lower triangles (memory sum n_s (n_s + 1) / 2, not S max(n_s)^2): strand s's factor is
-    data[ptr[s]:ptr[s+1]], row i of L at ptr[s] + i (i + 1) / 2 (:meth:`factor` unpacks it).
+    """Cholesky factors of every strand's step matrix on its n_s = 3 N_s real dofs, each strand's either dense or
+    block semiseparable (``structured[s]``).
 
-    Tip first: with P the reversal of the dofs, the stored L is lower triangular with P Mhat P = L L^T,
-    i.e. Mhat = (P L P)(P L P)^T with P L P upper triangular.  A contact on element e moves the dofs
-    of elements 0..e only, so the contact problem needs just the leading block D[:k, :k] of
-    D = Mhat^-1, and that is (T T^T)^-1 (reversed) for the trailing block T = L[n-k:, n-k:]: O(k^3)
-    instead of O(n^3) (:meth:`leading_inverse`)."""
+    Tip first: with P the reversal of the dofs, the factor L is lower triangular with P Mhat P = L L^T, i.e.
+    Mhat = (P L P)(P L P)^T with P L P upper triangular.  A contact on element e moves the dofs of elements 0..e
+    only, so the contact problem needs just the leading block D[:k, :k] of D = Mhat^-1, and that is (T T^T)^-1
+    (reversed) for the trailing block T = L[n-k:, n-k:]: O(k^3) instead of O(n^3) (:meth:`leading_inverse`).
 
-    def __init__(self, n_elements: np.ndarray):
+    Dense: stored back to back as packed lower triangles (memory sum n_s (n_s + 1) / 2, not S max(n_s)^2): strand
+    s's factor is data[ptr[s]:ptr[s+1]], row i of L at ptr[s] + i (i + 1) / 2.  Structured (factor_step_generators,
+    groomtool.semiseparable): L_kk = L3[e], L_kj = V_k^T W_j (k > j) over the strand's elements in tip-first order,
+    flat over the groom's elements from elem_ptr[s] (9 + 6 r numbers per element; V the later generators of
+    P Mhat P).  :meth:`factor` gives either as a dense (n, n) array."""
+
+    def __init__(self, n_elements: np.ndarray, rank: int = STEP_RANK):
         self.sizes = 3 * np.asarray(n_elements, dtype=np.int64)
         self.ptr = np.zeros(len(self.sizes) + 1, dtype=np.int64)
         np.cumsum(packed_size(self.sizes), out=self.ptr[1:])
         self.data = np.zeros(int(self.ptr[-1]))
+        self.elem_ptr = np.zeros(len(self.sizes) + 1, dtype=np.int64)
+        np.cumsum(self.sizes // 3, out=self.elem_ptr[1:])
+        E = int(self.elem_ptr[-1])
+        self.L3 = np.zeros((E, 3, 3))
+        self.W = np.zeros((E, rank, 3))
+        self.V = np.zeros((E, rank, 3))
+        self.structured = np.zeros(len(self.sizes), dtype=bool)
         # per strand: whether its factor includes an unstable-mode correction C (factor_step_matrix), and whether
         # that C is kept in the StepCorrections given (False: a fresh C made without one, not stored anywhere)
         self.corrected = np.zeros(len(self.sizes), dtype=bool)
         self.correction_kept = np.ones(len(self.sizes), dtype=bool)
 
     def factor(self, s: int) -> np.ndarray:
-        """The stored (tip-first, lower triangular) factor L of P Mhat_s P, unpacked (a new (n, n) array)."""
-        return _unpack_lower(self.data, int(self.ptr[s]), int(self.sizes[s]))
+        """The (tip-first, lower triangular) factor L of P Mhat_s P as a new dense (n, n) array."""
+        n = int(self.sizes[s])
+        if self.structured[s]:
+            return _structured_trailing(self.L3, self.W, self.V, int(self.elem_ptr[s]), int(self.elem_ptr[s + 1]), n)
+        return _unpack_lower(self.data, int(self.ptr[s]), n)
 
     def set_factor(self, s: int, L: np.ndarray) -> None:
-        """Store the lower triangle of ``L`` as strand s's factor."""
+        """Store the lower triangle of ``L`` as strand s's (dense) factor."""
         _pack_lower(np.ascontiguousarray(L, dtype=np.float64), self.data[self.ptr[s]:self.ptr[s + 1]])
+        self.structured[s] = False
 
     def solve(self, rhs: np.ndarray) -> np.ndarray:
         """x = Mhat^-1 rhs per strand; rhs (S, n_pad) padded (padding rows are copied: identity)."""
         rhs = np.ascontiguousarray(rhs, dtype=np.float64)
         out = rhs.copy()
-        _solve_kernel(self.data, self.ptr, self.sizes, rhs, out)
+        _solve_kernel(self.data, self.ptr, self.sizes, self.structured, self.elem_ptr, self.L3, self.W, self.V,
+                      rhs, out)
         return out
 
     def apply(self, x: np.ndarray) -> np.ndarray:
         """Mhat x = P L L^T P x per strand; x (S, n_pad) padded (padding rows are copied: identity)."""
         x = np.ascontiguousarray(x, dtype=np.float64)
         out = x.copy()
-        _apply_kernel(self.data, self.ptr, self.sizes, x, out)
+        _apply_kernel(self.data, self.ptr, self.sizes, self.structured, self.elem_ptr, self.L3, self.W, self.V, x,
+                      out)
         return out
 
     def leading_inverse(self, s: int, k: int) -> np.ndarray:
-        """(Mhat_s^-1)[:k, :k]: the inverse of the factor's trailing k x k block, reversed (LAPACK dpotri)."""
-        T = _trailing_block(self.data, int(self.ptr[s]), int(self.sizes[s]), int(k))
-        return np.ascontiguousarray(cho_inverse(T, k)[::-1, ::-1])
+        """(Mhat_s^-1)[:k, :k]: (T T^T)^-1 for the factor's trailing k x k block T, reversed (dense: LAPACK dpotri on
+        T, O(k^3); structured: two block substitutions on the identity, O(k^2 r): _structured_trailing_inverse)."""
+        if self.structured[s]:
+            inv = _structured_trailing_inverse(self.L3, self.W, self.V, int(self.elem_ptr[s]),
+                                               int(self.elem_ptr[s + 1]), int(k))
+        else:
+            inv = cho_inverse(_trailing_block(self.data, int(self.ptr[s]), int(self.sizes[s]), int(k)), k)
+        return np.ascontiguousarray(inv[::-1, ::-1])
+
+
+@njit(cache=True)
+def _structured_trailing_inverse(L3, W, V, e0, e1, k):
+    """(T T^T)^-1 for T = L[n-k:, n-k:] of the semiseparable L of elements e0..e1-1 (StrandFactors), in O(k^2 r): on
+    the m = 3 ne dofs of the ne elements that T touches (then cropped to the last k: the trailing block of the inverse
+    of a lower triangular matrix's trailing block), Z = T^-1 by the forward substitution on the identity (column c is
+    zero above its element: Z_i = L_ii^-1 (I_i - V_i^T t), t += W_i Z_i over the columns < 3 (i + 1)), then
+    D = T^-T Z by the backward one on the columns at or before each row's element (D_i = L_ii^-T (Z_i - W_i^T s),
+    s += V_i D_i), the rest by symmetry."""
+    n = 3 * (e1 - e0)
+    first = e0 + (n - k) // 3
+    ne = e1 - first
+    m = 3 * ne
+    r = W.shape[1]
+    Z = np.zeros((m, m))
+    t = np.zeros((r, m))
+    for i in range(ne):  # rows 3i..3i+2 of Z, columns < c1 (the inner loops run along the columns)
+        e = first + i
+        c1 = 3 * (i + 1)
+        z0, z1, z2 = Z[3 * i], Z[3 * i + 1], Z[3 * i + 2]
+        z0[3 * i], z1[3 * i + 1], z2[3 * i + 2] = 1.0, 1.0, 1.0
+        for a in range(r):
+            v0, v1, v2 = V[e, a, 0], V[e, a, 1], V[e, a, 2]
+            ta = t[a]
+            for c in range(c1):
+                z0[c] -= v0 * ta[c]
+                z1[c] -= v1 * ta[c]
+                z2[c] -= v2 * ta[c]
+        l00, l10, l11, l20, l21, l22 = L3[e, 0, 0], L3[e, 1, 0], L3[e, 1, 1], L3[e, 2, 0], L3[e, 2, 1], L3[e, 2, 2]
+        for c in range(c1):
+            x0 = z0[c] / l00
+            x1 = (z1[c] - l10 * x0) / l11
+            z2[c] = (z2[c] - l20 * x0 - l21 * x1) / l22
+            z0[c], z1[c] = x0, x1
+        for a in range(r):
+            w0, w1, w2 = W[e, a, 0], W[e, a, 1], W[e, a, 2]
+            ta = t[a]
+            for c in range(c1):
+                ta[c] += w0 * z0[c] + w1 * z1[c] + w2 * z2[c]
+    D = Z  # row block i of D overwrites Z's: the backward substitution reads only its own rows of Z
+    sv = np.zeros((r, m))
+    for i in range(ne - 1, -1, -1):
+        e = first + i
+        c1 = 3 * (i + 1)
+        d0, d1, d2 = D[3 * i], D[3 * i + 1], D[3 * i + 2]
+        for a in range(r):
+            w0, w1, w2 = W[e, a, 0], W[e, a, 1], W[e, a, 2]
+            sa = sv[a]
+            for c in range(c1):
+                d0[c] -= w0 * sa[c]
+                d1[c] -= w1 * sa[c]
+                d2[c] -= w2 * sa[c]
+        l00, l10, l11, l20, l21, l22 = L3[e, 0, 0], L3[e, 1, 0], L3[e, 1, 1], L3[e, 2, 0], L3[e, 2, 1], L3[e, 2, 2]
+        for c in range(c1):
+            x2 = d2[c] / l22
+            x1 = (d1[c] - l21 * x2) / l11
+            d0[c] = (d0[c] - l10 * x1 - l20 * x2) / l00
+            d1[c], d2[c] = x1, x2
+        for a in range(r):
+            v0, v1, v2 = V[e, a, 0], V[e, a, 1], V[e, a, 2]
+            sa = sv[a]
+            for c in range(c1):
+                sa[c] += v0 * d0[c] + v1 * d1[c] + v2 * d2[c]
+    for i in range(m):  # the upper part by symmetry (the diagonal blocks: their lower triangles)
+        for c in range(i + 1, m):
+            D[i, c] = D[c, i]
+    return D[m - k:, m - k:]
+
+
+@njit(cache=True)
+def _structured_trailing(L3, W, V, e0, e1, k):
+    """L[n-k:, n-k:] (dense, zeros above the diagonal) of the semiseparable lower triangular L of elements e0..e1-1:
+    L_ii = L3[i], L_ij = V_i^T W_j (i > j); n = 3 (e1 - e0)."""
+    n = 3 * (e1 - e0)
+    first = e0 + (n - k) // 3  # the first element with a row in the block
+    m = 3 * (e1 - first)
+    full = np.zeros((m, m))
+    r = W.shape[1]
+    for i in range(first, e1):
+        a0 = 3 * (i - first)
+        for x in range(3):
+            for y in range(x + 1):
+                full[a0 + x, a0 + y] = L3[i, x, y]
+        for j in range(first, i):
+            b0 = 3 * (j - first)
+            for x in range(3):
+                for y in range(3):
+                    acc = 0.0
+                    for c in range(r):
+                        acc += V[i, c, x] * W[j, c, y]
+                    full[a0 + x, b0 + y] = acc
+    return np.ascontiguousarray(full[m - k:, m - k:])
 
 
 @njit(cache=True)
@@ -238,10 +357,10 @@ def _trailing_block(data, o, n, k):
 
 
 @njit(cache=True)
-def _solve_kernel(data, ptr, sizes, rhs, out):
-    """x = P (L L^T)^-1 P rhs per strand (L stored tip first, P the reversal).  A zero rhs gives x = 0 without a
-    solve, and the forward substitution starts at the first non-zero of P rhs (a right-hand side H^T r on the
-    dofs up to a strand's farthest contact is zero towards the tip): the same x."""
+def _solve_kernel(data, ptr, sizes, structured, elem_ptr, L3, W, V, rhs, out):
+    """x = P (L L^T)^-1 P rhs per strand (L stored tip first, P the reversal; dense or structured: StrandFactors).  A
+    zero rhs gives x = 0 without a solve, and the forward substitution starts at the first non-zero of P rhs (a
+    right-hand side H^T r on the dofs up to a strand's farthest contact is zero towards the tip): the same x."""
     for s in range(sizes.shape[0]):
         n = sizes[s]
         first = n
@@ -253,18 +372,33 @@ def _solve_kernel(data, ptr, sizes, rhs, out):
             for i in range(n):
                 out[s, i] = 0.0
             continue
-        L = data[ptr[s]:ptr[s + 1]]
-        y = _forward_from(L, rhs[s, :n][::-1].copy(), n, first)
-        x = _backward(L, y, n)
+        if structured[s]:
+            e0, e1 = elem_ptr[s], elem_ptr[s + 1]
+            x = rhs[s, :n][::-1].copy()
+            ef = first // 3  # elements before it: zero rows of P rhs, zero forward solution
+            solve_lower_strand(L3, W, V, e0 + ef, e1, x[3 * ef:])
+            solve_upper_strand(L3, W, V, e0, e1, x)
+        else:
+            L = data[ptr[s]:ptr[s + 1]]
+            y = _forward_from(L, rhs[s, :n][::-1].copy(), n, first)
+            x = _backward(L, y, n)
         for i in range(n):
             out[s, i] = x[n - 1 - i]
 
 
 @njit(cache=True)
-def _apply_kernel(data, ptr, sizes, x, out):
-    """out = P L L^T P x per strand (L stored tip first, P the reversal)."""
+def _apply_kernel(data, ptr, sizes, structured, elem_ptr, L3, W, V, x, out):
+    """out = P L L^T P x per strand (L stored tip first, P the reversal; dense or structured: StrandFactors)."""
     for s in range(sizes.shape[0]):
         n = sizes[s]
+        if structured[s]:
+            e0, e1 = elem_ptr[s], elem_ptr[s + 1]
+            y = x[s, :n][::-1].copy()
+            _upper_apply_strand(L3, W, V, e0, e1, y)
+            _lower_apply_strand(L3, W, V, e0, e1, y)
+            for i in range(n):
+                out[s, n - 1 - i] = y[i]
+            continue
         L = data[ptr[s]:ptr[s + 1]]  # packed rows: L[i, k] = L[i (i + 1) / 2 + k]
         y = np.zeros(n)
         for i in range(n):  # y = L^T P x
@@ -278,6 +412,40 @@ def _apply_kernel(data, ptr, sizes, x, out):
             for k in range(i + 1):
                 acc += L[r + k] * y[k]
             out[s, n - 1 - i] = acc
+
+
+@njit(cache=True)
+def _upper_apply_strand(L3, W, V, e0, e1, y):
+    """y <- L^T y in place for the semiseparable L (StrandFactors): (L^T y)_j = L_jj^T y_j + W_j^T sum_{k>j} V_k y_k."""
+    r = W.shape[1]
+    acc = np.zeros(r)
+    for j in range(e1 - 1, e0 - 1, -1):
+        i = 3 * (j - e0)
+        y0, y1, y2 = y[i], y[i + 1], y[i + 2]
+        for c in range(3):
+            v = L3[j, 0, c] * y0 + L3[j, 1, c] * y1 + L3[j, 2, c] * y2
+            for a in range(r):
+                v += W[j, a, c] * acc[a]
+            y[i + c] = v
+        for a in range(r):
+            acc[a] += V[j, a, 0] * y0 + V[j, a, 1] * y1 + V[j, a, 2] * y2
+
+
+@njit(cache=True)
+def _lower_apply_strand(L3, W, V, e0, e1, y):
+    """y <- L y in place for the semiseparable L (StrandFactors): (L y)_k = L_kk y_k + V_k^T sum_{j<k} W_j y_j."""
+    r = W.shape[1]
+    acc = np.zeros(r)
+    for k in range(e0, e1):
+        i = 3 * (k - e0)
+        y0, y1, y2 = y[i], y[i + 1], y[i + 2]
+        for c in range(3):
+            v = L3[k, c, 0] * y0 + L3[k, c, 1] * y1 + L3[k, c, 2] * y2
+            for a in range(r):
+                v += V[k, a, c] * acc[a]
+            y[i + c] = v
+        for a in range(r):
+            acc[a] += W[k, a, 0] * y0 + W[k, a, 1] * y1 + W[k, a, 2] * y2
 
 
 @njit(cache=True)
@@ -400,11 +568,21 @@ def factor_step_matrix(A: np.ndarray, B, n_elements: np.ndarray,
     Returns the factors and the number of these strands whose step matrix was modified.  Compiled (LAPACK dpotrf
     per strand), one eigendecomposition in Python per new C.
     """
-    S, n_pad, _ = A.shape
-    n_elements = np.asarray(n_elements, dtype=np.int64)
+    S = A.shape[0]
     if out is None:
         out = StrandFactors(n_elements)
         first = 0
+    return out, _factor_dense(A, B, n_elements, corrections, float(a_scale), stiffness, float(k_scale),
+                              float(b_scale), out, first, first + S, first + np.arange(S))
+
+
+def _factor_dense(A, B, n_elements, corrections, a_scale, stiffness, k_scale, b_scale, out, first, stop, ids) -> int:
+    """factor_step_matrix's work on the strands ``ids`` (absolute, increasing, in first..stop-1, the range whose
+    corrections one arena holds): A (len(ids), n, n) their padded mass matrices, B their dense dF/dq or
+    generators, n_elements and stiffness per row of A.  Returns the number modified."""
+    S, n_pad, _ = A.shape
+    n_elements = np.asarray(n_elements, dtype=np.int64)
+    ids = np.asarray(ids, dtype=np.int64)
     Kd = (np.zeros((S, n_pad)) if stiffness is None
           else np.ascontiguousarray(np.asarray(stiffness, dtype=np.float64).reshape(S, -1)[:, :n_pad]))
     if isinstance(B, tuple):
@@ -414,14 +592,16 @@ def factor_step_matrix(A: np.ndarray, B, n_elements: np.ndarray,
         dense = np.ascontiguousarray(B, dtype=np.float64)
         U = G = Dg = np.zeros((0, 1, 3, 3))
     if corrections is not None:
-        corr, corr_start = corrections.range_arena(first, first + S)
+        corr, corr_start = corrections.range_arena(first, stop)
+        corr_start = np.ascontiguousarray(corr_start[ids - first])
     else:
         corr, corr_start = np.zeros(0), np.full(S, -1, dtype=np.int64)
     status = np.zeros(S, dtype=np.int64)
-    _factor_kernel(np.ascontiguousarray(A), float(a_scale), Kd, float(k_scale), dense, U, G, Dg, float(b_scale),
-                   n_elements, corr_start, corr, out.data, np.ascontiguousarray(out.ptr[first:first + S]), status)
-    out.corrected[first:first + S] = status > 0
-    out.correction_kept[first:first + S] = (status < 2) | (corrections is not None)
+    _factor_kernel(np.ascontiguousarray(A), a_scale, Kd, k_scale, dense, U, G, Dg, b_scale,
+                   n_elements, corr_start, corr, out.data, np.ascontiguousarray(out.ptr[ids]), status)
+    out.structured[ids] = False
+    out.corrected[ids] = status > 0
+    out.correction_kept[ids] = (status < 2) | (corrections is not None)
     fresh = []
     for s in np.flatnonzero(status == 2):
         n = 3 * int(n_elements[s])
@@ -433,13 +613,139 @@ def factor_step_matrix(A: np.ndarray, B, n_elements: np.ndarray,
         m = modified_step_matrix(a, b)
         L = _cholesky(np.ascontiguousarray(m[::-1, ::-1]))  # tip first (StrandFactors)
         if L is None:
-            raise np.linalg.LinAlgError(f"strand {first + s}: the step matrix is not positive definite")
-        out.set_factor(first + int(s), L)
+            raise np.linalg.LinAlgError(f"strand {int(ids[s])}: the step matrix is not positive definite")
+        out.set_factor(int(ids[s]), L)
         if corrections is not None:
-            fresh.append((first + int(s), m - (a + b)))
+            fresh.append((int(ids[s]), m - (a + b)))
     if fresh:  # the call's new corrections at once: at most one new arena (StepCorrections.store)
-        corrections.store(first, first + S, fresh)
-    return out, int(np.count_nonzero(status > 0))
+        corrections.store(first, stop, fresh)
+    return int(np.count_nonzero(status > 0))
+
+
+DENSE_BELOW = 0  # strands of fewer elements take the dense factorisation (factor_step_generators; measured crossover)
+
+
+def gravity_jacobian_left(linear_density: float, gravity) -> np.ndarray:
+    """X = -rhoS [g]x, with which superhelix.gravity_force_jacobian_parts's U_j = Theta_j^T X: the blocks of dF/dq
+    below the diagonal, (U_j G_k)^T = (X G_k)^T Theta_j (k > j), have Theta_j on their right as the mass matrix's do
+    (its earlier_j = [B_j; Theta_j])."""
+    g = np.asarray(gravity, dtype=np.float64)
+    gx = np.array([[0.0, -g[2], g[1]], [g[2], 0.0, -g[0]], [-g[1], g[0], 0.0]])
+    return -float(linear_density) * gx
+
+
+def factor_step_generators(mass, gravity_parts, gravity_left, n_elements, corrections: StepCorrections | None = None,
+                           *, a_scale: float = 1.0, stiffness=None, k_scale: float = 0.0, b_scale: float = 1.0,
+                           out: StrandFactors, first: int = 0, dense_below: int | None = None) -> int:
+    """factor_step_matrix from the mass matrix's generators (dynamics.MassGenerators of the strands first ..
+    first + S - 1) and dF/dq's (U, G, Dg) (gravity_force_jacobian_parts; None: b_scale 0) without forming M: the
+    step matrix Mhat = a_scale M + k_scale K + b_scale dF/dq is block semiseparable of rank 6,
+
+        Mhat_jj = a M_jj + k diag(K_j) + b Dg_j,    Mhat_kj = later_k^T [B_j; Theta_j]  (k > j),
+        later_k = a right_k + b [0; X G_k]          (X = gravity_jacobian_left: U_j = Theta_j^T X),
+
+    and so is the tip-first P Mhat P (later and earlier swap, each element's dofs reversed).  Per strand of at least
+    ``dense_below`` elements (default DENSE_BELOW), compiled: the block Cholesky of P (a/2 + b) P (the positive
+    definiteness test of factor_step_matrix) and of P Mhat P, O(N r^2) (groomtool.semiseparable.factor_strand), into
+    ``out``'s structured storage.  The others, and those whose a/2 + b or a + b is not positive definite (an
+    unstable-mode correction C, kept or new), take factor_step_matrix's dense path on M formed from the generators
+    (only theirs).  Returns the number of strands whose step matrix was modified."""
+    diag, later, earlier = mass.diag, mass.later, mass.earlier
+    S, N = diag.shape[:2]
+    n_elements = np.asarray(n_elements, dtype=np.int64)
+    dense_below = DENSE_BELOW if dense_below is None else int(dense_below)
+    Kd = (np.zeros((S, N, 3)) if stiffness is None
+          else np.ascontiguousarray(np.asarray(stiffness, dtype=np.float64).reshape(S, -1, 3)[:, :N]))
+    if gravity_parts is None or b_scale == 0.0:
+        G = Dg = np.zeros((S, N, 3, 3))
+        X = np.zeros((3, 3))
+        b_scale = 0.0 if gravity_parts is None else b_scale
+    else:
+        G, Dg = (np.ascontiguousarray(x[:, :N], dtype=np.float64) for x in gravity_parts[1:])
+        X = np.ascontiguousarray(gravity_left, dtype=np.float64)
+    use = n_elements >= dense_below
+    status = np.full(S, -1, dtype=np.int64)
+    _structured_factor_kernel(diag, later, earlier, float(a_scale), Kd, float(k_scale), G, Dg, X, float(b_scale),
+                              n_elements, use, np.ascontiguousarray(out.elem_ptr[first:first + S]), out.L3, out.W,
+                              out.V, status)
+    done = status == 0
+    out.structured[first:first + S] = done
+    out.corrected[first:first + S][done] = False
+    out.correction_kept[first:first + S][done] = True
+    rest = np.flatnonzero(~done)
+    if not len(rest):
+        return 0
+    Nd = max(int(n_elements[rest].max()), 1)
+    M = MassGenerators(diag[rest, :Nd], later[rest, :Nd], earlier[rest, :Nd]).dense(n_elements[rest])
+    B = (tuple(np.ascontiguousarray(x[rest, :Nd]) for x in gravity_parts) if gravity_parts is not None
+         else np.zeros_like(M))
+    return _factor_dense(M, B, n_elements[rest], corrections, float(a_scale), Kd[rest, :Nd], float(k_scale),
+                         float(b_scale), out, first, first + S, first + rest)
+
+
+@njit(cache=True)
+def _structured_factor_kernel(diag, later, earlier, a_s, Kd, k_s, G, Dg, X, b_s, n_elements, use, elem_start, L3, W,
+                              V, status):
+    """Per strand s with use[s] (factor_step_generators): the tip-first generators of P (a/2 + b) P and P Mhat P
+    (element k -> n - 1 - k, each block's dofs reversed: later' = [B; Theta] reversed, earlier' = later_hat
+    reversed), the first's factor as a test, the second's into L3, W, V from elem_start[s]; status 0, or 2 where
+    either is not positive definite (the dense path then decides)."""
+    r = later.shape[2]
+    for s in range(diag.shape[0]):
+        if not use[s]:
+            continue
+        n = n_elements[s]
+        e0 = elem_start[s]
+        Vs = V[e0:e0 + n]
+        d_half = np.empty((n, 3, 3))
+        d_full = np.empty((n, 3, 3))
+        ear_half = np.empty((n, r, 3))
+        ear_full = np.empty((n, r, 3))
+        for k in range(n):
+            kk = n - 1 - k
+            for x in range(3):
+                for y in range(3):
+                    m = a_s * diag[s, k, x, y]
+                    g = b_s * Dg[s, k, x, y]
+                    if x == y:
+                        m += k_s * Kd[s, k, x]
+                    d_half[kk, 2 - x, 2 - y] = 0.5 * m + g
+                    d_full[kk, 2 - x, 2 - y] = m + g
+            for c in range(r):
+                for y in range(3):
+                    Vs[kk, c, 2 - y] = earlier[s, k, c, y]
+                    m = a_s * later[s, k, c, y]
+                    g = 0.0
+                    if c >= 3:
+                        g = b_s * (X[c - 3, 0] * G[s, k, 0, y] + X[c - 3, 1] * G[s, k, 1, y]
+                                   + X[c - 3, 2] * G[s, k, 2, y])
+                    ear_half[kk, c, 2 - y] = 0.5 * m + g
+                    ear_full[kk, c, 2 - y] = m + g
+        L_test = np.empty((n, 3, 3))
+        W_test = np.empty((n, r, 3))
+        if not factor_strand(d_half, Vs, ear_half, 0, n, L_test, W_test):
+            status[s] = 2
+            continue
+        if not factor_strand(d_full, Vs, ear_full, 0, n, L3[e0:e0 + n], W[e0:e0 + n]):
+            status[s] = 2
+            continue
+        status[s] = 0
+
+
+def mass_apply(mass, x: np.ndarray, n_elements) -> np.ndarray:
+    """M x per strand from the generators (dynamics.MassGenerators), O(N): x and the result (S, N, 3) padded."""
+    x = np.ascontiguousarray(x, dtype=np.float64)
+    out = np.zeros_like(x)
+    _mass_apply_kernel(mass.diag, mass.later, mass.earlier, np.asarray(n_elements, dtype=np.int64),
+                       x.reshape(x.shape[0], -1), out.reshape(x.shape[0], -1))
+    return out
+
+
+@njit(cache=True)
+def _mass_apply_kernel(diag, later, earlier, n_elements, x, out):
+    for s in range(diag.shape[0]):
+        n = n_elements[s]
+        matvec_strand(diag[s], later[s], earlier[s], 0, n, x[s, :3 * n], out[s, :3 * n])
 
 
 @njit(cache=True)

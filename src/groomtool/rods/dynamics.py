@@ -118,14 +118,36 @@ def _root_motion_arrays(S: int, root_motion: dict | None, a: int, b: int):
     return init("root_angular_velocity"), init("root_acceleration"), init("root_angular_acceleration")
 
 
-def inertia_terms(helix: SuperHelix, inertia: Inertia, kin: Kinematics | None = None, rates=None, order: int = 4,
-                  root_motion: dict | None = None, mass: bool = True, strands: tuple[int, int] | None = None):
-    """(M, A): the mass matrix (S, 3N, 3N; None unless ``mass``) and the velocity terms (S, N, 3; None
-    without ``rates``) of one configuration, in one compiled pass over Gauss-Legendre points of
-    ``order`` per element (:func:`mass_matrix`, :func:`velocity_terms` for the formulas).
+@dataclass(frozen=True)
+class MassGenerators:
+    """The mass matrix of each strand as 3 x 3 blocks of a symmetric block-semiseparable matrix (groomtool.semiseparable):
 
-    ``strands`` = (first, stop): only those strands, N then their largest element count (the
-    simulator walks a large groom in chunks so that M never holds all of it)."""
+        M_jj = diag_j,   M_kj = later_k^T earlier_j  (k > j),   M_jk = M_kj^T,
+
+    earlier_j = [B_j ; Theta_j] (6 x 3: the rigid velocity of everything beyond element j, cf. :func:`mass_matrix`)
+    and later_k = right_k (6 x 3).  diag (S, N, 3, 3), later and earlier (S, N, 6, 3); zero on padding elements."""
+
+    diag: np.ndarray
+    later: np.ndarray
+    earlier: np.ndarray
+
+    def dense(self, n_elements) -> np.ndarray:
+        """The dense M (S, 3N, 3N), zero rows and columns of padding."""
+        S, N = self.diag.shape[:2]
+        M = np.zeros((S, 3 * N, 3 * N))
+        _dense_from_generators(self.diag, self.later, self.earlier, np.asarray(n_elements, dtype=np.int64), M)
+        return M
+
+
+def inertia_generators(helix: SuperHelix, inertia: Inertia, kin: Kinematics | None = None, rates=None,
+                       order: int = 4, root_motion: dict | None = None, mass: bool = True,
+                       strands: tuple[int, int] | None = None):
+    """(MassGenerators or None, A or None): the mass matrix's generators (O(N) per strand; None unless ``mass``) and
+    the velocity terms (S, N, 3; None without ``rates``) of one configuration, in one compiled pass over
+    Gauss-Legendre points of ``order`` per element (:func:`mass_matrix`, :func:`velocity_terms` for the formulas).
+
+    ``strands`` = (first, stop): only those strands, N then their largest element count (the simulator walks a
+    large groom in chunks)."""
     kin = kin if kin is not None else kinematics(helix)
     a, b = (0, helix.n_strands) if strands is None else (int(strands[0]), int(strands[1]))
     n_el = np.asarray(helix.n_elements[a:b], dtype=np.int64)
@@ -140,12 +162,23 @@ def inertia_terms(helix: SuperHelix, inertia: Inertia, kin: Kinematics | None = 
     u = (part(np.asarray(rates, dtype=np.float64).reshape(helix.curvatures.shape)) if want_A
          else np.zeros((S, N, 3)))
     om0, acc0, al0 = _root_motion_arrays(helix.n_strands, root_motion, a, b)
-    M = np.zeros((S, 3 * N, 3 * N)) if mass else np.zeros((1, 1, 1))
+    shape = (S, N) if mass else (1, 1)
+    gens = MassGenerators(np.zeros(shape + (3, 3)), np.zeros(shape + (6, 3)), np.zeros(shape + (6, 3)))
     A = np.zeros((S, N, 3))
     _inertia_kernel(part(helix.lengths), part(helix.curvatures), part(kin.z), part(kin.C, 1), part(kin.R, 1),
                     part(kin.D), part(kin.Theta), n_el, xg, wg, float(inertia.linear),
-                    np.asarray(inertia.rotational, dtype=np.float64), u, om0, acc0, al0, mass, want_A, M, A)
-    return (M if mass else None), (A if want_A else None)
+                    np.asarray(inertia.rotational, dtype=np.float64), u, om0, acc0, al0, mass, want_A,
+                    gens.diag, gens.later, gens.earlier, A)
+    return (gens if mass else None), (A if want_A else None)
+
+
+def inertia_terms(helix: SuperHelix, inertia: Inertia, kin: Kinematics | None = None, rates=None, order: int = 4,
+                  root_motion: dict | None = None, mass: bool = True, strands: tuple[int, int] | None = None):
+    """(M, A): :func:`inertia_generators` with the mass matrix dense (S, 3N, 3N; None unless ``mass``): O(N^2) per
+    strand from the O(N) generators."""
+    gens, A = inertia_generators(helix, inertia, kin, rates, order, root_motion, mass, strands)
+    n_el = helix.n_elements if strands is None else helix.n_elements[int(strands[0]):int(strands[1])]
+    return (gens.dense(n_el) if mass else None), A
 
 
 def mass_matrix(helix: SuperHelix, inertia: Inertia, kin: Kinematics | None = None, order: int = 4) -> np.ndarray:
@@ -156,8 +189,10 @@ def mass_matrix(helix: SuperHelix, inertia: Inertia, kin: Kinematics | None = No
                     rhoS ([m1]x B_k + (tr(m2) I - m2) Theta_k + G_k) + IId Theta_k + Gr_k ]
     (B_k = R_k D_k(l_k) + [C_{k+1} - C_0]x Theta_k; m0, m1, m2, IId: mass, first/second moment and
     rotational inertia beyond node k+1; E_k, G_k, Gr_k: int over element k of J_own, [x]x J_own,
-    II Jw_own); M_kk adds element k's own int rhoS J_own^T J_own + Jw_own^T II Jw_own.  O(N^2) per
-    strand, compiled (:func:`_inertia_kernel`).
+    II Jw_own); M_kk = [B_k^T | Theta_k^T] right'_k (right_k without element k's own E_k, G_k, Gr_k) plus
+    element k's own int rhoS J_own^T J_own + Jw_own^T II Jw_own.  The generators (:class:`MassGenerators`:
+    earlier_j = [B_j; Theta_j], later_k = right_k, O(N) per strand) come from one compiled pass
+    (:func:`_inertia_kernel`), the dense blocks from them (O(N^2)).
     """
     return inertia_terms(helix, inertia, kin, order=order)[0]
 
@@ -248,11 +283,11 @@ def _local_frame(t, w, z, buf, psi0, psi1, Dt, p2, dpsi, u, want_motion):
 
 @njit(cache=True)
 def _inertia_kernel(l, w, z, C, R, Dl, Theta, n_elements, xg, wg, rhoS, rot, u, root_om, root_acc, root_alpha,
-                    want_mass, want_A, M, A):
-    """M (S, 3N, 3N, zero padding, written only with ``want_mass``) and A (S, N, 3, with ``want_A``) of
-    mass_matrix and velocity_terms in one pass per strand: per Gauss point the own-element Jacobians,
-    world inertia and (for A) the point accelerations; per element the moments; suffix sums beyond
-    each node; then the blocks M_jk = [B_j^T | Theta_j^T] right_k (module docstring)."""
+                    want_mass, want_A, Md, Ml, Me, A):
+    """The mass matrix's generators (MassGenerators: Md (S, N, 3, 3), Ml = right_k and Me = [B_j; Theta_j]
+    (S, N, 6, 3), written only with ``want_mass``) and A (S, N, 3, with ``want_A``) of mass_matrix and velocity_terms
+    in one pass per strand: per Gauss point the own-element Jacobians, world inertia and (for A) the point
+    accelerations; per element the moments; suffix sums beyond each node (module docstring)."""
     S, N = l.shape
     Q = xg.shape[0]
     buf = np.empty((3, 5))
@@ -292,8 +327,6 @@ def _inertia_kernel(l, w, z, C, R, Dl, Theta, n_elements, xg, wg, rhoS, rot, u, 
     Te = np.empty((N, 3))
     ownA = np.empty((N, 3))
     B = np.empty((N, 3, 3))
-    top = np.empty((N, 3, 3))
-    bottom = np.empty((N, 3, 3))
     dtop = np.empty((N, 3, 3))
     dbottom = np.empty((N, 3, 3))
     for s in range(S):
@@ -444,8 +477,8 @@ def _inertia_kernel(l, w, z, C, R, Dl, Theta, n_elements, xg, wg, rhoS, rot, u, 
                         db += rhoS * (tr * Th[a, b] - m2[a, 0] * Th[0, b] - m2[a, 1] * Th[1, b] - m2[a, 2] * Th[2, b])
                         dtop[k, a, b] = dt_
                         dbottom[k, a, b] = db
-                        top[k, a, b] = dt_ + rhoS * Ee[k, a, b]
-                        bottom[k, a, b] = db + rhoS * Ge[k, a, b] + Gre[k, a, b]
+                        Ml[s, k, a, b] = dt_ + rhoS * Ee[k, a, b]
+                        Ml[s, k, 3 + a, b] = db + rhoS * Ge[k, a, b] + Gre[k, a, b]
                 m0 += l[s, k]
                 for a in range(3):
                     m1[a] += m1e[k, a]
@@ -454,25 +487,37 @@ def _inertia_kernel(l, w, z, C, R, Dl, Theta, n_elements, xg, wg, rhoS, rot, u, 
                         IId[a, b] += IIe[k, a, b]
         if not want_mass:
             continue
+        # earlier_k = [B_k; Theta_k]; M_kk = [B_k^T | Theta_k^T] right'_k + own_k
+        for k in range(n):
+            Bk = B[k]
+            Tk = Theta[s, k]
+            for a in range(3):
+                for b in range(3):
+                    Me[s, k, a, b] = Bk[a, b]
+                    Me[s, k, 3 + a, b] = Tk[a, b]
+                    Md[s, k, a, b] = (Bk[0, a] * dtop[k, 0, b] + Bk[1, a] * dtop[k, 1, b] + Bk[2, a] * dtop[k, 2, b]
+                                      + Tk[0, a] * dbottom[k, 0, b] + Tk[1, a] * dbottom[k, 1, b]
+                                      + Tk[2, a] * dbottom[k, 2, b]) + owne[k, a, b]
+
+
+@njit(cache=True)
+def _dense_from_generators(diag, later, earlier, n_elements, M):
+    """M[s] (3N, 3N) with blocks M_jj = diag_j, M_jk = earlier_j^T later_k = M_kj^T (j < k) (MassGenerators)."""
+    r = later.shape[2]
+    for s in range(diag.shape[0]):
+        n = n_elements[s]
         for j in range(n):
-            Bj = B[j]
-            Tj = Theta[s, j]
-            for k in range(j, n):
-                if k == j:
-                    rt = dtop[k]
-                    rb = dbottom[k]
-                else:
-                    rt = top[k]
-                    rb = bottom[k]
+            for a in range(3):
+                for b in range(3):
+                    M[s, 3 * j + a, 3 * j + b] = diag[s, j, a, b]
+            for k in range(j + 1, n):
                 for a in range(3):
                     for b in range(3):
-                        v = (Bj[0, a] * rt[0, b] + Bj[1, a] * rt[1, b] + Bj[2, a] * rt[2, b]
-                             + Tj[0, a] * rb[0, b] + Tj[1, a] * rb[1, b] + Tj[2, a] * rb[2, b])
-                        if k == j:
-                            M[s, 3 * j + a, 3 * k + b] = v + owne[k, a, b]
-                        else:
-                            M[s, 3 * j + a, 3 * k + b] = v
-                            M[s, 3 * k + b, 3 * j + a] = v
+                        v = 0.0
+                        for c in range(r):
+                            v += earlier[s, j, c, a] * later[s, k, c, b]
+                        M[s, 3 * j + a, 3 * k + b] = v
+                        M[s, 3 * k + b, 3 * j + a] = v
 
 
 # --------------------------------------------------------------------------- Super Space Clothoids (the simulator's)

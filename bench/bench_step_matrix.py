@@ -1,0 +1,124 @@
+"""The step matrix per strand size: dense (M formed, O(N^2), LAPACK Cholesky, O(N^3)) against block semiseparable
+(simulate_linalg.factor_step_generators: generators in O(N), factor in O(N r^2)), M v, the solves and the leading
+blocks of Mhat^-1 the contact problem needs (StrandFactors.leading_inverse).
+
+Strands of 8 cm in N = 10..96 elements, hanging down, gently curved (curvature ~ 5 1/m), at dt = 1/240 s with implicit gravity:
+their step matrices need no unstable-mode correction (both paths then do the same work as in the simulator).  CPU
+time (time.process_time) per strand, best of ``--repeat`` rounds of ``--strands`` strands, one BLAS thread.
+
+    python bench/bench_step_matrix.py [--sizes 10 16 24 32 43 64 96] [--strands 200] [--repeat 3]
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+import argparse  # noqa: E402
+import time  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+from groomtool.material import Material  # noqa: E402
+from groomtool.rods import dynamics as dyn  # noqa: E402
+from groomtool.rods import superhelix as sh  # noqa: E402
+from groomtool.simulate_linalg import (StrandFactors, factor_step_generators, factor_step_matrix,  # noqa: E402
+                                       gravity_jacobian_left, mass_apply)
+
+GRAVITY = np.array([0.0, -9.81, 0.0])
+DT = 1 / 240
+
+
+def strands(S: int, N: int, seed: int = 0) -> sh.SuperHelix:
+    rng = np.random.default_rng(seed)
+    lengths = np.full((S, N), 0.08 / N)
+    q = rng.normal(size=(S, N, 3)) * 5.0
+    down = np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # the tangent (first column) along -y
+    frames = np.repeat(down[None], S, axis=0)
+    return sh.SuperHelix(rng.normal(size=(S, 3)) * 0.05, frames, lengths, q, np.full(S, N))
+
+
+def best(fn, repeat: int) -> float:
+    times = []
+    for _ in range(repeat):
+        t0 = time.process_time()
+        fn()
+        times.append(time.process_time() - t0)
+    return min(times)
+
+
+def measure(N: int, S: int, repeat: int) -> dict:
+    helix = strands(S, N)
+    mat = Material()
+    inertia = dyn.Inertia.from_material(mat)
+    kin = sh.kinematics(helix)
+    parts = sh.gravity_force_jacobian_parts(helix, mat.linear_density, GRAVITY, kin)
+    K = sh.stiffness(helix, mat.stiffness_diag)
+    left = gravity_jacobian_left(mat.linear_density, GRAVITY)
+    counts = helix.n_elements
+    kw = dict(stiffness=K, k_scale=DT * DT, b_scale=-DT * DT)
+    dense = StrandFactors(counts)
+    structured = StrandFactors(counts)
+
+    def dense_path():
+        M, _ = dyn.inertia_terms(helix, inertia, kin)
+        factor_step_matrix(M, parts, counts, out=dense, **kw)
+
+    def structured_path():
+        gens, _ = dyn.inertia_generators(helix, inertia, kin)
+        factor_step_generators(gens, parts, left, counts, out=structured, dense_below=0, **kw)
+
+    dense_path()
+    structured_path()
+    assert not dense.corrected.any() and structured.structured.all()
+    gens, _ = dyn.inertia_generators(helix, inertia, kin)
+    n = 3 * N
+    rhs = np.random.default_rng(1).normal(size=(S, n))
+    half = n // 2
+    M, _ = dyn.inertia_terms(helix, inertia, kin)
+    v = rhs.reshape(S, N, 3)
+    row = {"N": N, "strands": S,
+           "dense_ms": 1e3 * best(dense_path, repeat) / S,
+           "structured_ms": 1e3 * best(structured_path, repeat) / S,
+           "mass_dense_ms": 1e3 * best(lambda: dyn.inertia_terms(helix, inertia, kin), repeat) / S,
+           "generators_ms": 1e3 * best(lambda: dyn.inertia_generators(helix, inertia, kin), repeat) / S,
+           "factor_only_ms": 1e3 * best(lambda: factor_step_generators(gens, parts, left, counts, out=structured,
+                                                                      dense_below=0, **kw), repeat) / S,
+           "Mv_dense_us": 1e6 * best(lambda: np.einsum("sij,sj->si", M, rhs), repeat) / S,
+           "Mv_generators_us": 1e6 * best(lambda: mass_apply(gens, v, counts), repeat) / S,
+           "solve_dense_us": 1e6 * best(lambda: dense.solve(rhs), repeat) / S,
+           "solve_structured_us": 1e6 * best(lambda: structured.solve(rhs), repeat) / S}
+    for name, k in (("all", n), ("half", half)):
+        row[f"leading_{name}_dense_us"] = 1e6 * best(lambda: [dense.leading_inverse(s, k) for s in range(S)],
+                                                     repeat) / S
+        row[f"leading_{name}_structured_us"] = 1e6 * best(
+            lambda: [structured.leading_inverse(s, k) for s in range(S)], repeat) / S
+    x_d, x_s = dense.solve(rhs), structured.solve(rhs)
+    row["solve_rel_diff"] = float(np.abs(x_d - x_s).max() / np.abs(x_d).max())
+    return row
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--sizes", type=int, nargs="*", default=[10, 16, 24, 32, 43, 64, 96])
+    ap.add_argument("--strands", type=int, default=200)
+    ap.add_argument("--repeat", type=int, default=3)
+    args = ap.parse_args(argv)
+    print(f"load {os.getloadavg()[0]:.2f}")
+    cols = ["N", "dense_ms", "structured_ms", "mass_dense_ms", "generators_ms", "factor_only_ms", "Mv_dense_us", "Mv_generators_us",
+            "solve_dense_us",
+            "solve_structured_us", "leading_all_dense_us", "leading_all_structured_us", "leading_half_dense_us",
+            "leading_half_structured_us", "solve_rel_diff"]
+    print("| " + " | ".join(cols) + " |")
+    for N in args.sizes:
+        row = measure(N, args.strands, args.repeat)
+        print("| " + " | ".join(f"{row[c]:.3g}" if isinstance(row[c], float) else str(row[c]) for c in cols) + " |",
+              flush=True)
+    print(f"load {os.getloadavg()[0]:.2f}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
