@@ -21,6 +21,10 @@ a time by ~2 gamma / W_ii per sweep (redundant contacts, docs/solvers.md section
 what is left is the consensus between the two strands of each contact.  One iteration costs about two
 products with H (per end: its panel of packed H) and one triangular solve pair per strand: ~ a Gauss-Seidel sweep.
 
+For Super-Helices (run_admm's ``geometry``: the groom and its contacts) M_s is block-semiseparable of rank 6 and the
+x-step runs through its O(n_s) factor (admm_structured.py: harolongo's x-step 443 -> 73 ms CPU, no dense factors);
+without the geometry or with dense D blocks (Super Space Clothoids) through the dense Cholesky factors here.
+
 s is always in the cones (an exact equilibrium in the inversion), so the caller's ``stop`` rule (certificate.py's
 bound) can certify it at any check.  With ``stop_strands`` the rule also gets the strand solves'
 h = sum_e J_e^T x_e: l = D^1/2 h is a dual point whose gap is about the strands' disagreement
