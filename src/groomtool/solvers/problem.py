@@ -150,8 +150,40 @@ class ContactProblem:
         return self.H @ self.D_apply(self.H.T @ r) + 2.0 * self.gamma * r
 
     def velocity(self, r: np.ndarray) -> np.ndarray:
-        """u = W r + b (3m,)."""
-        return self.delassus_apply(r) + self.b
+        """u = W r + b (3m,).  Once H D is packed (packed()): u_i = H_i v + 2 gamma r_i + b_i with v = D H^T r
+        (dof_velocity), the Gauss-Seidel operator's own product; the last u is kept for its r and b (the solver's
+        last measure, asked again by its caller, costs nothing)."""
+        if "packed" not in self._cache:
+            return self.delassus_apply(r) + self.b
+        from .gauss_seidel import packed_apply
+
+        r3 = np.ascontiguousarray(r, dtype=np.float64).reshape(-1, 3)
+        last = self._cache.get("velocity")
+        if last is not None and last[1] is self.b and np.array_equal(last[0], r3):
+            return last[2].copy()
+        v = self.dof_velocity(r3)
+        H = self._cache["packed"][0]
+        u = np.empty_like(r3)
+        packed_apply(H.ptr, H.cols, H.vals, v, 2.0 * self.gamma, r3, self.b.reshape(-1, 3), u)
+        u = u.reshape(-1)
+        self._cache["velocity"] = (r3.copy(), self.b, u)
+        return u.copy()
+
+    def dof_velocity(self, r3: np.ndarray) -> np.ndarray:
+        """v = D H^T r (n,) from the packed H D panels (packed(); r3 (m, 3)).  The last v is kept for its r: the
+        problems of with_free_velocity share it, so a step at rest that starts from the last solve's impulses (the
+        same W) does not compute it again.  Do not modify the result."""
+        from .gauss_seidel import packed_transpose_apply
+
+        r3 = np.ascontiguousarray(r3, dtype=np.float64).reshape(-1, 3)
+        last = self._cache.get("dof_velocity")
+        if last is not None and np.array_equal(last[0], r3):
+            return last[1]
+        G = self.packed()[1]
+        v = np.empty(self.n_dofs)
+        packed_transpose_apply(G.ptr, G.cols, G.vals, r3, self.n_dofs, v)
+        self._cache["dof_velocity"] = (r3.copy(), v)
+        return v
 
     def assemble_W(self) -> sp.csr_matrix:
         """W = H D H^T + 2 gamma I as a sparse (3m, 3m) matrix (small cases, tests), through the sparse
@@ -195,6 +227,16 @@ class ContactProblem:
             H, G = self.packed()
             self._cache["diag"] = diagonal_blocks(H, G, self.gamma)
         return self._cache["diag"]
+
+    def normalized_diagonal(self):
+        """gauss_seidel.normalize_diagonal of the diagonal blocks (s, W_ii / s and its inverse, invertible flags),
+        cached: every solve of a step at rest, and both solves of a step (the warm start's sweep, then the rest),
+        share them."""
+        if "normalized" not in self._cache:
+            from .gauss_seidel import normalize_diagonal
+
+            self._cache["normalized"] = normalize_diagonal(self.diagonal_blocks())
+        return self._cache["normalized"]
 
     def with_free_velocity(self, b: np.ndarray) -> "ContactProblem":
         """The same W (H, D, gamma, mu, and what is cached from them: packed rows, diagonal blocks, rho) with another
