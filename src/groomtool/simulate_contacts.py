@@ -40,6 +40,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
 from .rods import clothoid as cl
 from .rods import superhelix as sh
@@ -74,16 +75,23 @@ def match_contacts(old, new, arc_tolerance: float) -> np.ndarray:
     hi = np.searchsorted(sorted_keys, key_new, "right")
     sb_old = np.nan_to_num(np.asarray(old.s_b, dtype=np.float64))
     sb_new = np.nan_to_num(np.asarray(new.s_b, dtype=np.float64))
-    best = np.full(m_new, np.inf)
-    for k in range(int(np.max(hi - lo, initial=0))):
-        idx = lo + k
-        valid = idx < hi
-        j = order[np.minimum(idx, len(order) - 1)]
-        d = np.abs(new.s_a - old.s_a[j]) + np.abs(sb_new - sb_old[j])
-        better = valid & (d <= arc_tolerance) & (d < best)
-        best[better] = d[better]
-        out[better] = j[better]
+    _closest_in_ranges(order, lo, hi, np.asarray(new.s_a, dtype=np.float64), sb_new,
+                       np.asarray(old.s_a, dtype=np.float64), sb_old, float(arc_tolerance), out)
     return out
+
+
+@njit(cache=True)
+def _closest_in_ranges(order, lo, hi, sa_new, sb_new, sa_old, sb_old, tol, out):
+    """out[i] = the j = order[k], k in [lo[i], hi[i]) (in that order), of the smallest d = |sa_new[i] - sa_old[j]| +
+    |sb_new[i] - sb_old[j]| <= tol, the first of equal ones (out[i] left where there is none)."""
+    for i in range(lo.shape[0]):
+        best = np.inf
+        for k in range(lo[i], hi[i]):
+            j = order[k]
+            d = abs(sa_new[i] - sa_old[j]) + abs(sb_new[i] - sb_old[j])
+            if d <= tol and d < best:
+                best = d
+                out[i] = j
 
 
 def normal_velocity_targets(gap, allowed, dt: float, push_rate: float, max_push_speed: float) -> np.ndarray:
