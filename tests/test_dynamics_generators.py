@@ -122,7 +122,7 @@ def test_structured_step_factor_is_the_dense_one(seed, n, scale, rot_scale, dt, 
 
 
 def test_unstable_strands_take_the_dense_path_with_their_kept_corrections():
-    """Long floppy strands under strong implicit gravity need the unstable-mode correction: the generators' path
+    """Long floppy strands at dt = 1/24 s need the unstable-mode correction: the generators' path
     sends them to the dense one (modified counted, corrections kept as factor_step_matrix keeps them), the stable
     ones stay structured; a mixed dense_below sends the short ones dense too."""
     rng = np.random.default_rng(5)

@@ -64,8 +64,8 @@ from .rods import dynamics as dyn
 from .rods import superhelix as sh
 from .simulate_contacts import (ContactTracker, contact_gaps, match_contacts,  # noqa: F401 (re-exported)
                                 normal_velocity_targets, strand_part, touching)
-from .simulate_linalg import (StepCorrections, StrandFactors, factor_step_matrix, moved_dofs, step_difference_apply,
-                              strand_chunks)
+from .simulate_linalg import (StepCorrections, StrandFactors, factor_step_generators, factor_step_matrix,
+                              gravity_jacobian_left, mass_apply, moved_dofs, step_difference_apply, strand_chunks)
 from .simulate_motion import HeadMotion
 from .simulate_motion import rigid_motion as _rigid_motion  # noqa: F401 (re-exported)
 
@@ -441,19 +441,20 @@ class Simulator:
             ids = np.flatnonzero(moved[a:b]) + a
             for run in np.split(ids, np.flatnonzero(np.diff(ids) != 1) + 1) if len(ids) else ():
                 r0, r1 = int(run[0]), int(run[-1]) + 1  # consecutive moved strands
-                M, A = dyn.inertia_terms(helix, self.inertia, kin, rates=st.rates if kept.velocity_terms is not None
-                                         else None, order=p.quadrature_order, root_motion=pose.root_motion,
-                                         strands=(r0, r1))
-                Nc = M.shape[1] // 3
+                mass, A = dyn.inertia_generators(helix, self.inertia, kin, rates=st.rates if kept.velocity_terms is not
+                                                 None else None, order=p.quadrature_order,
+                                                 root_motion=pose.root_motion, strands=(r0, r1))
+                Nc = mass.diag.shape[1]
                 if kept.velocity_terms is not None:
                     kept.velocity_terms[r0:r1] = 0.0
                     kept.velocity_terms[r0:r1, :Nc] = A
                 kept.curvatures[r0:r1] = st.curvatures[r0:r1]
                 t0 = self._time("dynamics", t0)
-                dF = tuple(x[r0:r1, :Nc] for x in kept.gravity_parts) if p.implicit_gravity else M
-                _, modified = factor_step_matrix(M, dF, self.n_elements[r0:r1], self._corrections,
-                                                 stiffness=self.K[r0:r1, :Nc], out=self._factors, first=r0,
-                                                 **self._step_scales())
+                dF = tuple(x[r0:r1, :Nc] for x in kept.gravity_parts) if p.implicit_gravity else None
+                modified = factor_step_generators(mass, dF, gravity_jacobian_left(self.inertia.linear, self.gravity),
+                                                  self.n_elements[r0:r1], self._corrections,
+                                                  stiffness=self.K[r0:r1, :Nc], out=self._factors, first=r0,
+                                                  **self._step_scales())
                 self.modified_strands += modified
                 t0 = self._time("factor", t0)
         v_free = self._free_rates_kept(st, helix, kin)
@@ -532,20 +533,24 @@ class Simulator:
         keep = self._keeps_assembly(pose)
         A_all = np.zeros_like(st.curvatures) if keep and with_A else None
         t0 = self._time("dynamics", t0)
-        # per chunk of strands (M never holds a whole large groom): M and A, then
-        # rhs = M v + h (F - K (q - q0) - A) and Mhat = (1 + h alpha) M + (h^2 + h beta) K - h^2 dF/dq factorised
+        # per chunk of strands (the dense path's M never holds a whole large groom): M's generators and A, then
+        # rhs = M v + h (F - K (q - q0) - A) (M v in O(N)) and Mhat = (1 + h alpha) M + (h^2 + h beta) K - h^2 dF/dq
+        # factorised from the generators (block semiseparable; dense where a strand needs an unstable-mode correction)
+        left = gravity_jacobian_left(self.inertia.linear, self.gravity)
         for a, b in self._chunks:
-            M, A = dyn.inertia_terms(helix, self.inertia, kin, rates=st.rates if with_A else None,
-                                     order=p.quadrature_order, root_motion=pose.root_motion, strands=(a, b))
-            n = M.shape[1]
-            Nc = n // 3
-            rhs[a:b, :n] = _chunk_rhs(M, A, force, st.rates, a, b, h)
+            mass, A = dyn.inertia_generators(helix, self.inertia, kin, rates=st.rates if with_A else None,
+                                             order=p.quadrature_order, root_motion=pose.root_motion, strands=(a, b))
+            Nc = mass.diag.shape[1]
+            n = 3 * Nc
+            f = force[a:b, :Nc] if A is None else force[a:b, :Nc] - A
+            rhs[a:b, :n] = (mass_apply(mass, st.rates[a:b, :Nc], self.n_elements[a:b]) + h * f).reshape(b - a, n)
             if A_all is not None and A is not None:
                 A_all[a:b, :Nc] = A
             t0 = self._time("dynamics", t0)
-            dF = tuple(x[a:b, :Nc] for x in parts) if parts is not None else M
-            _, modified = factor_step_matrix(M, dF, self.n_elements[a:b], self._corrections, stiffness=self.K[a:b, :Nc],
-                                             out=self._factors, first=a, **self._step_scales())
+            dF = tuple(x[a:b, :Nc] for x in parts) if parts is not None else None
+            modified = factor_step_generators(mass, dF, left, self.n_elements[a:b], self._corrections,
+                                              stiffness=self.K[a:b, :Nc], out=self._factors, first=a,
+                                              **self._step_scales())
             self.modified_strands += modified
             t0 = self._time("factor", t0)
         rhs[~np.repeat(self.mask, 3, axis=1)] = 0.0

@@ -465,8 +465,9 @@ def _factor_kernel(A, a_scale, Kd, k_scale, B, U, G, Dg, b_scale, n_elements, co
     generators of superhelix.gravity_force_jacobian, never stored densely); if a/2 + b is positive
     definite, L = cholesky(a + b) (status 0); else with a kept correction C (packed in corr at corr_start[s]) for
     which a/2 + b + C is, L = cholesky(a + b + C) (status 1); else status 2 (a new eigendecomposition
-    is needed: done by the caller).  The Cholesky factors are of the matrices with the dofs reversed
-    (tip first, StrandFactors); L goes to out_data[out_ptr[s]:] (packed lower triangle)."""
+    is needed: done by the caller).  A strand with status 3 on entry skips the test of a/2 + b (known not
+    positive definite).  The Cholesky factors are of the matrices with the dofs reversed (tip first,
+    StrandFactors); L goes to out_data[out_ptr[s]:] (packed lower triangle)."""
     for s in range(A.shape[0]):
         n = 3 * n_elements[s]
         a = np.empty((n, n))
@@ -494,10 +495,13 @@ def _factor_kernel(A, a_scale, Kd, k_scale, B, U, G, Dg, b_scale, n_elements, co
         # tip first: factor P (.) P (StrandFactors)
         a = a[::-1, ::-1]
         b = b[::-1, ::-1]
-        L, ok = _try_cholesky(0.5 * a + b)
         st = 0
-        if ok:
-            L, ok = _try_cholesky(a + b)
+        L = np.empty((n, n))
+        ok = False
+        if status[s] != 3:  # 3 on entry: a/2 + b is known not to be positive definite (factor_step_generators)
+            L, ok = _try_cholesky(0.5 * a + b)
+            if ok:
+                L, ok = _try_cholesky(a + b)
         if not ok and corr_start[s] >= 0:
             C = _symmetric_reversed(corr, corr_start[s], n)
             L, ok = _try_cholesky(0.5 * a + b + C)
@@ -576,10 +580,12 @@ def factor_step_matrix(A: np.ndarray, B, n_elements: np.ndarray,
                               float(b_scale), out, first, first + S, first + np.arange(S))
 
 
-def _factor_dense(A, B, n_elements, corrections, a_scale, stiffness, k_scale, b_scale, out, first, stop, ids) -> int:
+def _factor_dense(A, B, n_elements, corrections, a_scale, stiffness, k_scale, b_scale, out, first, stop, ids,
+                  indefinite=None) -> int:
     """factor_step_matrix's work on the strands ``ids`` (absolute, increasing, in first..stop-1, the range whose
     corrections one arena holds): A (len(ids), n, n) their padded mass matrices, B their dense dF/dq or
-    generators, n_elements and stiffness per row of A.  Returns the number modified."""
+    generators, n_elements and stiffness per row of A; ``indefinite`` (per row): a/2 + b is known not to be
+    positive definite (its dense test skipped).  Returns the number modified."""
     S, n_pad, _ = A.shape
     n_elements = np.asarray(n_elements, dtype=np.int64)
     ids = np.asarray(ids, dtype=np.int64)
@@ -597,6 +603,8 @@ def _factor_dense(A, B, n_elements, corrections, a_scale, stiffness, k_scale, b_
     else:
         corr, corr_start = np.zeros(0), np.full(S, -1, dtype=np.int64)
     status = np.zeros(S, dtype=np.int64)
+    if indefinite is not None:
+        status[np.asarray(indefinite, dtype=bool)] = 3
     _factor_kernel(np.ascontiguousarray(A), a_scale, Kd, k_scale, dense, U, G, Dg, b_scale,
                    n_elements, corr_start, corr, out.data, np.ascontiguousarray(out.ptr[ids]), status)
     out.structured[ids] = False
@@ -680,7 +688,7 @@ def factor_step_generators(mass, gravity_parts, gravity_left, n_elements, correc
     B = (tuple(np.ascontiguousarray(x[rest, :Nd]) for x in gravity_parts) if gravity_parts is not None
          else np.zeros_like(M))
     return _factor_dense(M, B, n_elements[rest], corrections, float(a_scale), Kd[rest, :Nd], float(k_scale),
-                         float(b_scale), out, first, first + S, first + rest)
+                         float(b_scale), out, first, first + S, first + rest, indefinite=status[rest] == 2)
 
 
 @njit(cache=True)
@@ -689,7 +697,8 @@ def _structured_factor_kernel(diag, later, earlier, a_s, Kd, k_s, G, Dg, X, b_s,
     """Per strand s with use[s] (factor_step_generators): the tip-first generators of P (a/2 + b) P and P Mhat P
     (element k -> n - 1 - k, each block's dofs reversed: later' = [B; Theta] reversed, earlier' = later_hat
     reversed), the first's factor as a test, the second's into L3, W, V from elem_start[s]; status 0, or 2 where
-    either is not positive definite (the dense path then decides)."""
+    either is not positive definite (then a/2 + b is not, as a + b = (a/2 + b) + a/2: the dense path takes it with
+    the unstable-mode correction)."""
     r = later.shape[2]
     for s in range(diag.shape[0]):
         if not use[s]:
