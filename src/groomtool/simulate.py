@@ -70,6 +70,12 @@ from .simulate_motion import HeadMotion
 from .simulate_motion import rigid_motion as _rigid_motion  # noqa: F401 (re-exported)
 
 CONTACT_MODES = ("none", "head", "all")
+# the contact solve (run_gauss_seidel's options; docs/simulation.md section 3): its residual measured cheaply after every
+# sweep (quick_check), so a solve within tolerance after 3 sweeps stops there instead of at the tenth; exact checks
+# every SOLVE_CHECK_EVERY sweeps, Coulomb cluster steps (solvers/cluster_newton.py) from the first of them on instead
+# of the 20th sweep (a sagging groom's slipping root contacts plateau at ~3e-6 from the first sweeps)
+QUICK_CHECK = 1
+SOLVE_CHECK_EVERY = 10
 
 
 # --------------------------------------------------------------------------- parameters
@@ -290,6 +296,7 @@ class Simulator:
         self._at_rest: AtRestSystem | None = None  # the last assembly, while the groom stays at rest
         self._kept = None  # (A, dF/dq generators) of the assembly under way, for _at_rest (_keeps_assembly)
         self._contacts_at = None  # per strand the curvatures its contacts were made at (_stale_contacts)
+        self._last_solve = None  # (contacts, r_scale, r~) of the last contact solve (solve_contacts)
         self.reused_steps = 0  # steps that reused the last assembly (_at_rest_system)
         self.partial_steps = 0  # steps at rest that assembled only the strands that moved (_partial_assembly)
         self.partial_strands = 0  # strands assembled by those steps, summed
@@ -791,6 +798,11 @@ class Simulator:
             return law_residual(r, problem.velocity(r), problem.mu, problem.rho(), scale, law="coulomb")
 
         r = system.r0
+        last = self._last_solve
+        if last is not None and last[0] is system.contacts and last[1] == system.r_scale and len(last[2]) == len(r):
+            # the same contact set as the last solve's (a step at rest): r0 is that solve's r~ times r_scale over
+            # r_scale; its own r~ instead (the same to round-off), for which the problem (W kept) has v = D H^T r~
+            r = last[2]
         iterations, status = 0, "warm_start"
         if p.refresh_warm_start:
             # one sweep from the warm start in any case: an accepted warm start is a force held constant, not a
@@ -812,12 +824,15 @@ class Simulator:
         if not err <= p.solver_tolerance:
             res = solve_contact_problem(problem, law="coulomb", method=p.solver, tol=p.solver_tolerance,
                                         max_iter=max(1, p.max_sweeps - iterations), r0=r, scale=scale,
-                                        symmetric=p.solver_symmetric, anderson=p.solver_anderson)
+                                        symmetric=p.solver_symmetric, anderson=p.solver_anderson,
+                                        quick_check=QUICK_CHECK, check_every=SOLVE_CHECK_EVERY,
+                                        cluster=SOLVE_CHECK_EVERY)
             r, status = np.asarray(res.r), str(res.status)
             iterations += int(res.iterations)
             err = float(res.residual)
         if self.clothoid:
             r, err, status = _polish_sticking(problem, r, err, error, status)
+        self._last_solve = (system.contacts, system.r_scale, np.asarray(r, dtype=np.float64).reshape(-1))
         self._time("solve", t0)
         system.stats.update(solver_iterations=iterations, solver_residual=float(err),
                             solver_converged=bool(err <= p.solver_tolerance), solver_status=status)
