@@ -18,6 +18,7 @@ and invert.json.
 
     python bench/bench_invert.py                          # both grooms, contacts head and all
     python bench/bench_invert.py --grooms harolongo --modes all --max-sweeps 300
+    python bench/bench_invert.py --grooms example1000 --modes all --admm dense   # ADMM with dense strand factors
 """
 
 from __future__ import annotations
@@ -75,6 +76,8 @@ def run_child(spec: dict) -> dict:
     extra = {k: spec[k] for k in ("q0_tolerance", "strict", "contact_radius") if k in spec}
     params = InversionParams(contacts=spec["mode"], snap_roots=snap, max_sweeps=spec["max_sweeps"],
                              solver=spec.get("solver", "auto"), **extra)
+    if spec.get("admm") == "dense":  # the strand-split ADMM with dense strand factors (as before issue 16's O(n_s) x-step)
+        sys.modules["groomtool.invert"].admm_geometry = lambda *args: None
     c1 = time.process_time()
     out: dict = {"spec": spec, "load_s": load_s, "strands": groom.n_strands}
     try:
@@ -124,7 +127,8 @@ def _f(x, f="{:.2f}"):
 
 
 def _radius(spec: dict) -> str:
-    return f" (r_c {1e3 * spec['contact_radius']:g} mm)" if "contact_radius" in spec else ""
+    out = f" (r_c {1e3 * spec['contact_radius']:g} mm)" if "contact_radius" in spec else ""
+    return out + (" [ADMM: dense strand factors]" if spec.get("admm") == "dense" else "")
 
 
 def markdown(meta: dict, runs: list[dict]) -> str:
@@ -192,6 +196,9 @@ def main() -> None:
     ap.add_argument("--solver", default="auto", choices=["auto", "gs", "clarabel", "admm"])
     ap.add_argument("--q0-tolerance", type=float, default=None, help="(default: invert's own)")
     ap.add_argument("--strict", action="store_true")
+    ap.add_argument("--admm", default="structured", choices=["structured", "dense"],
+                    help="the strand-split ADMM's strand systems: semiseparable factors (Super-Helices, the default) or "
+                         "the dense Cholesky factors (as before)")
     ap.add_argument("--append", action="store_true", help="add the rows to the existing results file")
     ap.add_argument("--timeout", type=float, default=1800)
     ap.add_argument("--out", type=Path, default=RESULTS / "invert")
@@ -214,6 +221,8 @@ def main() -> None:
                 spec["q0_tolerance"] = args.q0_tolerance or None
             if args.strict:
                 spec["strict"] = True
+            if args.admm == "dense":
+                spec["admm"] = "dense"
             if groom.startswith("example"):
                 spec["contact_radius"] = EXAMPLE_CONTACT_RADIUS
             runs.append(child(spec, args.timeout))
