@@ -7,6 +7,13 @@ their step matrices need no unstable-mode correction (both paths then do the sam
 time (time.process_time) per strand, best of ``--repeat`` rounds of ``--strands`` strands, one BLAS thread.
 
     python bench/bench_step_matrix.py [--sizes 10 16 24 32 43 64 96] [--strands 200] [--repeat 3]
+
+Whole runs (``--whole DIR RUN STEPS``, RUN inverted or naive): a Simulator on an inversion directory with groom
+check's parameters (as check.py builds it), every strand dense (simulate_linalg.DENSE_BELOW = 1e9) then structured
+(0), each in its own process: CPU, the median later step, the simulator's stage timings per later step, drift and
+peak RSS, one JSON line each.
+
+    python bench/bench_step_matrix.py --whole /tmp/big/haro naive 6
 """
 
 from __future__ import annotations
@@ -17,6 +24,10 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import argparse  # noqa: E402
+import json  # noqa: E402
+import resource  # noqa: E402
+import subprocess  # noqa: E402
+import sys  # noqa: E402
 import time  # noqa: E402
 
 import numpy as np  # noqa: E402
@@ -100,12 +111,58 @@ def measure(N: int, S: int, repeat: int) -> dict:
     return row
 
 
+def whole_run(directory: str, run: str, steps: int, dense_below: int) -> dict:
+    """One simulation of an inversion directory (module docstring), strands below ``dense_below`` elements dense."""
+    from threadpoolctl import threadpool_limits
+
+    from groomtool import simulate_linalg
+    from groomtool.check import load_inverted
+    from groomtool.simulate import SimulationParams, Simulator
+
+    simulate_linalg.DENSE_BELOW = dense_below
+    inv = load_inverted(directory)
+    params = SimulationParams(contacts=inv.contacts, contact_radius=inv.contact_radius)
+    naive = run == "naive"
+    kw = {} if naive else dict(stiffness=inv.stiffness(), warm_start=inv.contact_forces,
+                               external_force=inv.boundary_force)
+    t0 = time.process_time()
+    with threadpool_limits(1):
+        sim = Simulator(inv.helix, inv.helix.curvatures.copy() if naive else inv.rest_curvatures, inv.material,
+                        inv.gravity, head=inv.head, params=params, **kw)
+        start = sim.tips()
+        cpu, first = [], {}
+        for i in range(steps):
+            t = time.process_time()
+            sim.step()
+            cpu.append(time.process_time() - t)
+            if i == 0:
+                first = dict(sim.timings)
+    later = {k: round((v - first.get(k, 0.0)) / max(steps - 1, 1), 4) for k, v in sim.timings.items()}
+    return {"dir": directory, "run": run, "steps": steps, "dense_below": dense_below,
+            "cpu_s": round(time.process_time() - t0, 2), "first_step_s": round(cpu[0], 2),
+            "median_later_step_s": round(float(np.median(cpu[1:])), 4) if steps > 1 else None,
+            "later_stage_s_per_step": later, "max_tip_drift_m": float(np.abs(sim.tips() - start).max()),
+            "modified_strand_steps": sim.modified_strands, "structured_strands": int(sim._factors.structured.sum()),
+            "peak_rss_gb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20, 3),
+            "load": round(os.getloadavg()[0], 2)}
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--sizes", type=int, nargs="*", default=[10, 16, 24, 32, 43, 64, 96])
     ap.add_argument("--strands", type=int, default=200)
     ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--whole", nargs=3, metavar=("DIR", "RUN", "STEPS"), default=None)
+    ap.add_argument("--one", nargs=4, metavar=("DIR", "RUN", "STEPS", "DENSE_BELOW"), default=None,
+                    help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
+    if args.one:
+        print(json.dumps(whole_run(args.one[0], args.one[1], int(args.one[2]), int(args.one[3]))), flush=True)
+        return 0
+    if args.whole:
+        for dense_below in (10**9, 0):
+            subprocess.run([sys.executable, __file__, "--one", *args.whole, str(dense_below)], check=True)
+        return 0
     print(f"load {os.getloadavg()[0]:.2f}")
     cols = ["N", "dense_ms", "structured_ms", "mass_dense_ms", "generators_ms", "factor_only_ms", "Mv_dense_us", "Mv_generators_us",
             "solve_dense_us",
