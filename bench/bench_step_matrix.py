@@ -7,6 +7,7 @@ their step matrices need no unstable-mode correction (both paths then do the sam
 time (time.process_time) per strand, best of ``--repeat`` rounds of ``--strands`` strands, one BLAS thread.
 
     python bench/bench_step_matrix.py [--sizes 10 16 24 32 43 64 96] [--strands 200] [--repeat 3]
+    python bench/bench_step_matrix.py --corrected   (rising strands of 30 cm: most on a correction)
 
 Whole runs (``--whole DIR RUN STEPS``, RUN inverted or naive): a Simulator on an inversion directory with groom
 check's parameters (as check.py builds it), every strand dense (simulate_linalg.DENSE_BELOW = 1e9) then structured
@@ -35,19 +36,20 @@ import numpy as np  # noqa: E402
 from groomtool.material import Material  # noqa: E402
 from groomtool.rods import dynamics as dyn  # noqa: E402
 from groomtool.rods import superhelix as sh  # noqa: E402
-from groomtool.simulate_linalg import (StrandFactors, factor_step_generators, factor_step_matrix,  # noqa: E402
+from groomtool.simulate_linalg import (StepCorrections, StrandFactors, factor_step_generators, factor_step_matrix,  # noqa: E402
                                        gravity_jacobian_left, mass_apply)
 
 GRAVITY = np.array([0.0, -9.81, 0.0])
 DT = 1 / 240
 
 
-def strands(S: int, N: int, seed: int = 0) -> sh.SuperHelix:
+def strands(S: int, N: int, seed: int = 0, corrected: bool = False) -> sh.SuperHelix:
+    """Hanging strands of 8 cm (none needs a correction), or with ``corrected`` rising strands of 30 cm (most do)."""
     rng = np.random.default_rng(seed)
-    lengths = np.full((S, N), 0.08 / N)
+    lengths = np.full((S, N), (0.3 if corrected else 0.08) / N)
     q = rng.normal(size=(S, N, 3)) * 5.0
     down = np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # the tangent (first column) along -y
-    frames = np.repeat(down[None], S, axis=0)
+    frames = np.repeat((-down if corrected else down)[None], S, axis=0)
     return sh.SuperHelix(rng.normal(size=(S, 3)) * 0.05, frames, lengths, q, np.full(S, N))
 
 
@@ -58,6 +60,37 @@ def best(fn, repeat: int) -> float:
         fn()
         times.append(time.process_time() - t0)
     return min(times)
+
+
+def measure_corrected(N: int, S: int, repeat: int) -> dict:
+    """Strands that (mostly) need the unstable-mode correction, with their kept corrections (a step after the first):
+    factor_step_matrix on M against factor_step_generators (whose dense path skips the dense test of a/2 + b)."""
+    helix = strands(S, N, corrected=True)
+    mat = Material()
+    inertia = dyn.Inertia.from_material(mat)
+    kin = sh.kinematics(helix)
+    parts = sh.gravity_force_jacobian_parts(helix, mat.linear_density, GRAVITY, kin)
+    K = sh.stiffness(helix, mat.stiffness_diag)
+    left = gravity_jacobian_left(mat.linear_density, GRAVITY)
+    counts = helix.n_elements
+    kw = dict(stiffness=K, k_scale=DT * DT, b_scale=-DT * DT)
+    corr_d, corr_s = StepCorrections(S), StepCorrections(S)
+    dense, structured = StrandFactors(counts), StrandFactors(counts)
+
+    def dense_path():
+        M, _ = dyn.inertia_terms(helix, inertia, kin)
+        return factor_step_matrix(M, parts, counts, corr_d, out=dense, **kw)[1]
+
+    def structured_path():
+        gens, _ = dyn.inertia_generators(helix, inertia, kin)
+        return factor_step_generators(gens, parts, left, counts, corr_s, out=structured, dense_below=0, **kw)
+
+    fresh_d = best(dense_path, 1)  # the first call: every correction new (eigendecompositions)
+    fresh_s = best(structured_path, 1)
+    assert np.array_equal(dense.corrected, structured.corrected)
+    return {"N": N, "corrected": int(dense.corrected.sum()), "fresh_dense_ms": 1e3 * fresh_d / S, "fresh_structured_ms": 1e3 * fresh_s / S,
+            "kept_dense_ms": 1e3 * best(dense_path, repeat) / S,
+            "kept_structured_ms": 1e3 * best(structured_path, repeat) / S}
 
 
 def measure(N: int, S: int, repeat: int) -> dict:
@@ -152,6 +185,7 @@ def main(argv=None) -> int:
     ap.add_argument("--sizes", type=int, nargs="*", default=[10, 16, 24, 32, 43, 64, 96])
     ap.add_argument("--strands", type=int, default=200)
     ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--corrected", action="store_true", help="strands that all need an unstable-mode correction")
     ap.add_argument("--whole", nargs=3, metavar=("DIR", "RUN", "STEPS"), default=None)
     ap.add_argument("--one", nargs=4, metavar=("DIR", "RUN", "STEPS", "DENSE_BELOW"), default=None,
                     help=argparse.SUPPRESS)
@@ -164,6 +198,15 @@ def main(argv=None) -> int:
             subprocess.run([sys.executable, __file__, "--one", *args.whole, str(dense_below)], check=True)
         return 0
     print(f"load {os.getloadavg()[0]:.2f}")
+    if args.corrected:
+        cols = ["N", "corrected", "fresh_dense_ms", "fresh_structured_ms", "kept_dense_ms", "kept_structured_ms"]
+        print("| " + " | ".join(cols) + " |")
+        for N in args.sizes:
+            row = measure_corrected(N, args.strands, args.repeat)
+            print("| " + " | ".join(f"{row[c]:.3g}" if isinstance(row[c], float) else str(row[c]) for c in cols)
+                  + " |", flush=True)
+        print(f"load {os.getloadavg()[0]:.2f}")
+        return 0
     cols = ["N", "dense_ms", "structured_ms", "mass_dense_ms", "generators_ms", "factor_only_ms", "Mv_dense_us", "Mv_generators_us",
             "solve_dense_us",
             "solve_structured_us", "leading_all_dense_us", "leading_all_structured_us", "leading_half_dense_us",
