@@ -49,7 +49,8 @@ def dense_from_generators(diag, later, earlier, n):
        rot_scale=st.sampled_from([1.0, 10.0, 1e3]), short=st.booleans())
 def test_mass_generators_rebuild_the_quadrature_mass_matrix(seed, n, scale, rot_scale, short):
     """M_kj = later_k^T earlier_j (k > j), M_jj = diag_j: the numpy quadrature's M to 1e-10 relative; the dense
-    mass_matrix is the generators' (bit for bit), and M x from the generators is M's product."""
+    mass_matrix is the generators' (bit for bit), a moving root and rates leave them as they are, and M x from the
+    generators is M's product."""
     rng = np.random.default_rng(seed)
     helix = random_strands(rng, 3, n, scale, (0.0005, 0.004) if short else (0.004, 0.04))
     inertia = dyn.Inertia.from_material(Material(), rot_scale)
@@ -62,6 +63,14 @@ def test_mass_generators_rebuild_the_quadrature_mass_matrix(seed, n, scale, rot_
         assert np.abs(got - want).max() <= 1e-10 * np.abs(want).max()
     M = dyn.mass_matrix(helix, inertia, order=5)
     assert np.array_equal(gens.dense(helix.n_elements), M)
+    # a moving root changes A only: the generators of the pass that also computes A are the same
+    motion = {key: rng.normal(size=(helix.n_strands, 3)) for key in ("root_velocity", "root_angular_velocity",
+                                                                      "root_acceleration", "root_angular_acceleration")}
+    rates = rng.normal(size=helix.curvatures.shape) * helix.element_mask[..., None]
+    moving, A = dyn.inertia_generators(helix, inertia, rates=rates, order=5, root_motion=motion)
+    for a, b in zip((moving.diag, moving.later, moving.earlier), (gens.diag, gens.later, gens.earlier)):
+        assert np.array_equal(a, b)
+    assert np.array_equal(A, dyn.velocity_terms(helix, rates, inertia, order=5, root_motion=motion))
     x = rng.normal(size=helix.curvatures.shape) * helix.element_mask[..., None]
     Mx = np.einsum("sij,sj->si", M, x.reshape(helix.n_strands, -1)).reshape(x.shape)
     assert np.abs(mass_apply(gens, x, helix.n_elements) - Mx).max() <= 1e-12 * np.abs(Mx).max()
