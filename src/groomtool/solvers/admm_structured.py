@@ -261,6 +261,18 @@ def _x_step_strands(strands, offsets, strand_ptr, elem, P, O, G, L, W, later, rh
 
 
 @njit(cache=True)
+def _permute_rows(a, order, out, inverse):
+    """out[p] = a[order[p]] (inverse False: ends to strand order) or out[order[p]] = a[p] (inverse True); numpy's
+    fancy assignment of the (E, 3) rows took 15 ms on harolongo, this 2.5 ms."""
+    for p in range(order.shape[0]):
+        e = order[p]
+        if inverse:
+            out[e, 0], out[e, 1], out[e, 2] = a[p, 0], a[p, 1], a[p, 2]
+        else:
+            out[p, 0], out[p, 1], out[p, 2] = a[e, 0], a[e, 1], a[e, 2]
+
+
+@njit(cache=True)
 def _frame_transpose_times(sF, y, out):
     """out_e = sF_e^T y_e (the world point force of an end's force copy)."""
     for e in range(sF.shape[0]):
@@ -366,6 +378,7 @@ class StructuredSplit:
         self.refactored = len(self.active)
         self._y = np.empty(3 * int(np.diff(self.offsets).max(initial=0)))
         self._rho_sorted = rho_sorted
+        self._in_order = (np.empty((self.n_ends, 3)), np.empty((self.n_ends, 3)))  # w and x in strand order
 
     def detached(self) -> "StructuredSplit":
         """A copy sharing every array but not the problem (for admm.ADMMState)."""
@@ -379,7 +392,7 @@ class StructuredSplit:
         out = copy.copy(self)
         out._attach(problem)
         out.diag = out.contact_diagonal(problem)
-        out.rho_c = out.rho_end = out.L = out.W = out.later = out.diag_M = out._rho_sorted = None
+        out.rho_c = out.rho_end = out.L = out.W = out.later = out.diag_M = out._rho_sorted = out._in_order = None
         return out
 
     def _gather(self, y) -> np.ndarray:
@@ -397,11 +410,11 @@ class StructuredSplit:
 
     def x_step(self, w, x):
         """x_e = w_e - J_e M_s^-1 (sum_{e' on s} J_e'^T w_e') / rho_e (admm.py's x-step), in strand order."""
-        ws = np.take(w, self.ends_sorted, axis=0)
-        xs = np.empty_like(ws)
+        ws, xs = self._in_order
+        _permute_rows(np.ascontiguousarray(w), self.ends_sorted, ws, False)
         _x_step_strands(self.active, self.offsets, self.strand_ptr, self.elem, self.P, self.O, self.G, self.L, self.W,
                         self.later, self._rho_sorted, ws, xs, self._y)
-        x[self.ends_sorted] = xs
+        _permute_rows(xs, self.ends_sorted, x, True)
 
     def strand_sum(self, x) -> np.ndarray:
         """h = sum_e J_e^T x_e (n,) (admm.StrandSplit.strand_sum)."""
