@@ -14,9 +14,9 @@ from test_contact_jacobian import _random_contacts, _random_groom
 
 from groomtool.contact.jacobian import contact_jacobian
 from groomtool.rods import superhelix as sh
+from groomtool.semiseparable import solve_strand
 from groomtool.solvers import ContactProblem, solve_contact_problem
 from groomtool.solvers.admm import StrandSplit, run_admm
-from groomtool.semiseparable import solve_strand
 from groomtool.solvers.admm_structured import HelixContacts, StructuredSplit
 
 
