@@ -12,10 +12,11 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.sparse as sp
-from numba import njit
+from numba import njit, prange
 from scipy.linalg import lapack
 
 from .rods.dynamics import MassGenerators
+from .rods.superhelix import STRANDS_PER_TASK
 from .semiseparable import factor_strand, matvec_strand, solve_lower_strand, solve_upper_strand
 
 
@@ -356,12 +357,21 @@ def _trailing_block(data, o, n, k):
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, parallel=True)
 def _solve_kernel(data, ptr, sizes, structured, elem_ptr, L3, W, V, rhs, out):
+    """_solve_kernel_strands over all strands, STRANDS_PER_TASK a task, tasks in parallel."""
+    n = sizes.shape[0]
+    for task in prange((n + STRANDS_PER_TASK - 1) // STRANDS_PER_TASK):
+        _solve_kernel_strands(task * STRANDS_PER_TASK, min(n, (task + 1) * STRANDS_PER_TASK), data, ptr, sizes,
+            structured, elem_ptr, L3, W, V, rhs, out)
+
+
+@njit(cache=True)
+def _solve_kernel_strands(first, stop, data, ptr, sizes, structured, elem_ptr, L3, W, V, rhs, out):
     """x = P (L L^T)^-1 P rhs per strand (L stored tip first, P the reversal; dense or structured: StrandFactors).  A
     zero rhs gives x = 0 without a solve, and the forward substitution starts at the first non-zero of P rhs (a
     right-hand side H^T r on the dofs up to a strand's farthest contact is zero towards the tip): the same x."""
-    for s in range(sizes.shape[0]):
+    for s in range(first, stop):
         n = sizes[s]
         first = n
         for i in range(n):
@@ -386,10 +396,19 @@ def _solve_kernel(data, ptr, sizes, structured, elem_ptr, L3, W, V, rhs, out):
             out[s, i] = x[n - 1 - i]
 
 
-@njit(cache=True)
+@njit(cache=True, parallel=True)
 def _apply_kernel(data, ptr, sizes, structured, elem_ptr, L3, W, V, x, out):
+    """_apply_kernel_strands over all strands, STRANDS_PER_TASK a task, tasks in parallel."""
+    n = sizes.shape[0]
+    for task in prange((n + STRANDS_PER_TASK - 1) // STRANDS_PER_TASK):
+        _apply_kernel_strands(task * STRANDS_PER_TASK, min(n, (task + 1) * STRANDS_PER_TASK), data, ptr, sizes,
+            structured, elem_ptr, L3, W, V, x, out)
+
+
+@njit(cache=True)
+def _apply_kernel_strands(first, stop, data, ptr, sizes, structured, elem_ptr, L3, W, V, x, out):
     """out = P L L^T P x per strand (L stored tip first, P the reversal; dense or structured: StrandFactors)."""
-    for s in range(sizes.shape[0]):
+    for s in range(first, stop):
         n = sizes[s]
         if structured[s]:
             e0, e1 = elem_ptr[s], elem_ptr[s + 1]
@@ -457,9 +476,18 @@ def _try_cholesky(a):
         return a, False
 
 
-@njit(cache=True)
+@njit(cache=True, parallel=True)
 def _factor_kernel(A, a_scale, Kd, k_scale, B, U, G, Dg, b_scale, n_elements, corr_start, corr, out_data, out_ptr,
                    status):
+    """_factor_kernel_strands for every one of the strands, in parallel."""
+    for s in prange(A.shape[0]):
+        _factor_kernel_strands(s, s + 1, A, a_scale, Kd, k_scale, B, U, G, Dg, b_scale, n_elements, corr_start,
+            corr, out_data, out_ptr, status)
+
+
+@njit(cache=True)
+def _factor_kernel_strands(first, stop, A, a_scale, Kd, k_scale, B, U, G, Dg, b_scale, n_elements, corr_start, corr,
+                           out_data, out_ptr, status):
     """Per strand, on its 3 N_s real dofs: a = a_scale A + diag(k_scale Kd), b = b_scale B (B dense, or
     when B is empty the symmetric matrix with blocks U_j G_k for j < k and Dg_j on the diagonal: the
     generators of superhelix.gravity_force_jacobian, never stored densely); if a/2 + b is positive
@@ -468,7 +496,7 @@ def _factor_kernel(A, a_scale, Kd, k_scale, B, U, G, Dg, b_scale, n_elements, co
     is needed: done by the caller).  A strand with status 3 on entry skips the test of a/2 + b (known not
     positive definite).  The Cholesky factors are of the matrices with the dofs reversed (tip first,
     StrandFactors); L goes to out_data[out_ptr[s]:] (packed lower triangle)."""
-    for s in range(A.shape[0]):
+    for s in range(first, stop):
         n = 3 * n_elements[s]
         a = np.empty((n, n))
         b = np.empty((n, n))
@@ -691,16 +719,25 @@ def factor_step_generators(mass, gravity_parts, gravity_left, n_elements, correc
                          float(b_scale), out, first, first + S, first + rest, indefinite=status[rest] == 2)
 
 
-@njit(cache=True)
+@njit(cache=True, parallel=True)
 def _structured_factor_kernel(diag, later, earlier, a_s, Kd, k_s, G, Dg, X, b_s, n_elements, use, elem_start, L3, W,
                               V, status):
+    """_structured_factor_kernel_strands for every one of the strands, in parallel."""
+    for s in prange(diag.shape[0]):
+        _structured_factor_kernel_strands(s, s + 1, diag, later, earlier, a_s, Kd, k_s, G, Dg, X, b_s, n_elements,
+            use, elem_start, L3, W, V, status)
+
+
+@njit(cache=True)
+def _structured_factor_kernel_strands(first, stop, diag, later, earlier, a_s, Kd, k_s, G, Dg, X, b_s, n_elements, use,
+                                      elem_start, L3, W, V, status):
     """Per strand s with use[s] (factor_step_generators): the tip-first generators of P (a/2 + b) P and P Mhat P
     (element k -> n - 1 - k, each block's dofs reversed: later' = [B; Theta] reversed, earlier' = later_hat
     reversed), the first's factor as a test, the second's into L3, W, V from elem_start[s]; status 0, or 2 where
     either is not positive definite (then a/2 + b is not, as a + b = (a/2 + b) + a/2: the dense path takes it with
     the unstable-mode correction)."""
     r = later.shape[2]
-    for s in range(diag.shape[0]):
+    for s in range(first, stop):
         if not use[s]:
             continue
         n = n_elements[s]
@@ -750,9 +787,18 @@ def mass_apply(mass, x: np.ndarray, n_elements) -> np.ndarray:
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, parallel=True)
 def _mass_apply_kernel(diag, later, earlier, n_elements, x, out):
-    for s in range(diag.shape[0]):
+    """_mass_apply_kernel_strands over all strands, STRANDS_PER_TASK a task, tasks in parallel."""
+    n = diag.shape[0]
+    for task in prange((n + STRANDS_PER_TASK - 1) // STRANDS_PER_TASK):
+        _mass_apply_kernel_strands(task * STRANDS_PER_TASK, min(n, (task + 1) * STRANDS_PER_TASK), diag, later,
+            earlier, n_elements, x, out)
+
+
+@njit(cache=True)
+def _mass_apply_kernel_strands(first, stop, diag, later, earlier, n_elements, x, out):
+    for s in range(first, stop):
         n = n_elements[s]
         matvec_strand(diag[s], later[s], earlier[s], 0, n, x[s, :3 * n], out[s, :3 * n])
 
