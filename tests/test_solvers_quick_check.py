@@ -66,3 +66,18 @@ def test_quick_checks_stop_where_an_exact_check_after_every_sweep_stops(law):
     two = run_gauss_seidel(MatrixFreeOperator(P), law, tol=tol, max_sweeps=400, check_every=100, anderson=0,
                            cluster=None, newton=None, quick_check=2)
     assert two.converged and two.sweeps in (every.sweeps, every.sweeps + 1) and two.sweeps % 2 == 0
+
+
+def test_dense_block_strand_by_strand_is_the_explicit_W():
+    """MatrixFreeOperator.dense_block (summed strand by strand) against W = H D H^T + 2 gamma I, on random clusters of
+    a problem whose contacts touch one or two strands of dense D blocks."""
+    P = dynamics(200, 7)
+    P.gamma = 0.003
+    W = P.assemble_W().toarray()
+    op = MatrixFreeOperator(P)
+    rng = np.random.default_rng(2)
+    for size in (1, 5, 40, 200):
+        idx = np.sort(rng.choice(P.n_contacts, size=size, replace=False))
+        rows = (3 * idx[:, None] + np.arange(3)).ravel()
+        ref = W[np.ix_(rows, rows)]
+        np.testing.assert_allclose(op.dense_block(idx), ref, rtol=0, atol=1e-12 * np.abs(ref).max())

@@ -40,7 +40,7 @@ from numba import njit
 
 from . import residual as _res
 from .anderson import AndersonMixer
-from .blocks import UpperBlockDelassus, assemble_upper, upper_block_matvec
+from .blocks import UpperBlockDelassus, assemble_upper, dof_strands, upper_block_matvec
 from .cluster_newton import ClusterNewton
 from .cones import COULOMB, SOC, law_code
 from .subspace_newton import SubspaceNewton
@@ -267,17 +267,27 @@ def dense_upper_block(indptr, indices, blocks, idx, pos, out):
 
 
 @njit(cache=True)
-def dense_packed_block(h_ptr, h_cols, h_vals, g_ptr, g_cols, g_vals, idx, colpos, gamma2):
-    """W[idx][:, idx] = H_S (D H_S^T) + 2 gamma I from the packed panels of H and H D; colpos (n,) all -1
-    on entry (restored)."""
+def dense_packed_block(h_ptr, h_cols, h_vals, g_ptr, g_cols, g_vals, idx, colpos, gamma2, dof_strand):
+    """W[idx][:, idx] = sum_s H_S,s (D_s H_S,s^T) + 2 gamma I from the packed panels of H and H D, strand by strand
+    (D is block diagonal: strand s couples only the contacts on it, through its columns; dof_strand (n,) the strand
+    of each dof): sum_s (3 c_s)^2 w_s products instead of (3 k)^2 w for the whole cluster (a Coulomb cluster of
+    200 contacts on ~10 strands: ~25x fewer).  colpos (n,) all -1 on entry (restored)."""
     k = idx.shape[0]
+    n_entries = 0
+    for a in range(k):
+        n_entries += h_ptr[idx[a] + 1] - h_ptr[idx[a]]
+    cols = np.empty(n_entries, np.int64)
     nc = 0
     for a in range(k):
         i = idx[a]
         for p in range(h_ptr[i], h_ptr[i + 1]):
-            if colpos[h_cols[p]] < 0:
-                colpos[h_cols[p]] = nc
+            if colpos[h_cols[p]] == -1:
+                colpos[h_cols[p]] = -2
+                cols[nc] = h_cols[p]
                 nc += 1
+    cols = np.sort(cols[:nc])  # H_S's columns by dof, hence grouped by strand
+    for c in range(nc):
+        colpos[cols[c]] = c
     Hs = np.zeros((3 * k, nc))
     Gs = np.zeros((3 * k, nc))
     for a in range(k):
@@ -291,11 +301,43 @@ def dense_packed_block(h_ptr, h_cols, h_vals, g_ptr, g_cols, g_vals, idx, colpos
             if c >= 0:
                 for x in range(3):
                     Gs[3 * a + x, c] = g_vals[p, x]
-    for a in range(k):
-        i = idx[a]
-        for p in range(h_ptr[i], h_ptr[i + 1]):
-            colpos[h_cols[p]] = -1
-    out = Hs @ Gs.T
+    for c in range(nc):
+        colpos[cols[c]] = -1
+    out = np.zeros((3 * k, 3 * k))
+    rows = np.empty(k, np.int64)
+    c0 = 0
+    while c0 < nc:
+        s = dof_strand[cols[c0]]
+        c1 = c0
+        while c1 < nc and dof_strand[cols[c1]] == s:
+            c1 += 1
+        nr = 0  # the contacts whose H has a nonzero on strand s (the others' H_S,s and G_S,s are zero there)
+        for a in range(k):
+            on = False
+            for x in range(3):
+                for c in range(c0, c1):
+                    if Hs[3 * a + x, c] != 0.0:
+                        on = True
+                        break
+                if on:
+                    break
+            if on:
+                rows[nr] = a
+                nr += 1
+        Hsub = np.empty((3 * nr, c1 - c0))
+        Gsub = np.empty((3 * nr, c1 - c0))
+        for r in range(nr):
+            for x in range(3):
+                for c in range(c0, c1):
+                    Hsub[3 * r + x, c - c0] = Hs[3 * rows[r] + x, c]
+                    Gsub[3 * r + x, c - c0] = Gs[3 * rows[r] + x, c]
+        P = Hsub @ Gsub.T
+        for r in range(nr):
+            for q in range(nr):
+                for x in range(3):
+                    for y in range(3):
+                        out[3 * rows[r] + x, 3 * rows[q] + y] += P[3 * r + x, 3 * q + y]
+        c0 = c1
     for a in range(3 * k):
         out[a, a] += gamma2
     return out
@@ -447,6 +489,7 @@ class MatrixFreeOperator:
         self.dof_offsets = np.asarray(problem.dof_offsets, dtype=np.int64)
         self._incidence = None
         self._colpos = None
+        self._dof_strand = None
 
     @property
     def nbytes(self) -> int:
@@ -520,8 +563,11 @@ class MatrixFreeOperator:
         if self._colpos is None:
             self._colpos = np.full(self.n, -1, dtype=np.int64)
         H, G = self.H, self.G
+        if self._dof_strand is None:
+            self._dof_strand = dof_strands(self.dof_offsets)
         return dense_packed_block(H.ptr, H.cols, H.vals, G.ptr, G.cols, G.vals,
-                                  np.ascontiguousarray(idx, dtype=np.int64), self._colpos, self.gamma2)
+                                  np.ascontiguousarray(idx, dtype=np.int64), self._colpos, self.gamma2,
+                                  self._dof_strand)
 
 
 def contact_order(H: sp.spmatrix, how: str = "natural") -> np.ndarray | None:
