@@ -139,10 +139,10 @@ def test_inversion_with_admm_reports_the_smaller_bound_and_its_source(monkeypatc
     seen = []
     bound_fn = ip.rest_curvature_error_bound
 
-    def spy(problem, cp, r, u=None, line_search=True, strands=None):
-        out = bound_fn(problem, cp, r, u, line_search, strands)
+    def spy(problem, cp, r, u=None, line_search=True, strands=None, **known):
+        out = bound_fn(problem, cp, r, u, line_search, strands, **known)
         if strands is not None:
-            alone = bound_fn(problem, cp, r, u, line_search)
+            alone = bound_fn(problem, cp, r, u, line_search, HTr=known.get("HTr"))
             assert out["q0_error_bound"] <= alone["q0_error_bound"]
             seen.append((out["q0_error_bound"], alone["q0_error_bound"], out["q0_bound_source"]))
         return out

@@ -131,6 +131,26 @@ def test_x_step_solves_each_strand_system(seed, scale, n_strands, max_elements, 
     assert np.abs(h - ref_h).max() <= 1e-12 * max(1.0, np.abs(ref_h).max())
 
 
+@given(seed=st.integers(0, 10_000), scale=st.sampled_from([0.0, 1e-6, 5.0, 40.0]),
+       n_strands=st.integers(1, 6), max_elements=st.integers(1, 9), m=st.integers(1, 40))
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+def test_check_products_equal_the_csr_products(seed, scale, n_strands, max_elements, m):
+    """The checks' products through the generators equal the CSR H's: H^T s, sum_e J_e^T x_e (the strand sum),
+    W s + b and H D h + b, on every kind of contact (head, self-contacts, several ends on one element)."""
+    rng, helix, contacts, kin, P, split = _setup(seed, n_strands, max_elements, m, scale)
+    s = rng.normal(size=(P.n_contacts, 3))
+    x = rng.normal(size=(split.n_ends, 3))
+    b = P.b.reshape(-1, 3)
+    HTs, h, u, c = split.check_products(s, x, b)
+    H = P.H.toarray()
+    ref_HTs = H.T @ s.ravel()
+    ref_h = split.strand_sum(x)
+    ref_u = H @ (P.D_data * ref_HTs) + 2.0 * P.gamma * s.ravel() + P.b
+    ref_c = H @ (P.D_data * ref_h) + P.b
+    for got, ref in ((HTs, ref_HTs), (h, ref_h), (u, ref_u), (c, ref_c)):
+        assert np.abs(got - ref).max() <= 1e-12 * max(1.0, np.abs(ref).max())
+
+
 @given(seed=st.integers(0, 10_000), scale=st.sampled_from([0.0, 5.0, 40.0]), m=st.integers(1, 40))
 @settings(max_examples=20, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 def test_x_step_equals_the_dense_strand_split(seed, scale, m):

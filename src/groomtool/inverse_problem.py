@@ -321,7 +321,7 @@ def cone_violation(forces: np.ndarray, mu: np.ndarray) -> float:
 
 
 def rest_curvature_error_bound(problem: InverseProblem, cp, r, u=None, line_search: bool = True,
-                               strands=None) -> dict:
+                               strands=None, HTr=None, strands_c=None, products: dict | None = None) -> dict:
     """Certified bound on how far the rest curvatures of forces r (solver units, (3m,), in their cones) are
     from those of the optimum r*:  |q0 - q0*| = f_scale |K^-1 H^T (r - r*)| = f_scale sqrt(w_scale) |A^T (r - r*)|
     (A = H D^1/2, D = K^-2 / w_scale) <= f_scale sqrt(w_scale) B  (solvers/certificate.py), with B the smaller of
@@ -337,13 +337,21 @@ def rest_curvature_error_bound(problem: InverseProblem, cp, r, u=None, line_sear
     relative bound below is increasing in the absolute one, so it is the smaller one too.
     Returns {"q0_error_bound": relative to |q0*| (>= |q0| - the bound; inf when that is not positive),
     "q0_error_bound_abs": 1/m, l2 over all dofs, "q0_norm": |q0|, "q0_bound_source": "forces" | "strands"}.
-    ``cp``: problem.contact_problem(helix); ``u``: W r + b when already known."""
+    ``cp``: problem.contact_problem(helix); ``u``: W r + b, ``HTr``: H^T r, ``strands_c``: H D h + b, when already
+    known (e.g. through the strand-split ADMM's generators, admm_structured.StructuredSplit.check_products);
+    ``products`` (a dict): gets the H^T r and H D h + b used, for a later call on the same r and h."""
     from .solvers.certificate import error_bound, error_bound_with_strands  # kept off the CLI's start
 
-    e = error_bound(cp, r, u, line_search=line_search)
+    e = error_bound(cp, r, u, line_search=line_search, HTr=HTr)
     best, source = e["bound"], "forces"
+    if products is not None:
+        products["HTr"] = e["HTr"]
     if strands is not None:
-        e2 = error_bound_with_strands(cp, r, strands, HTr=e["HTr"])
+        if strands_c is None:
+            strands_c = cp.H @ cp.D_apply(np.asarray(strands, dtype=np.float64).reshape(-1)) + cp.b
+        if products is not None:
+            products["strands_c"] = strands_c
+        e2 = error_bound_with_strands(cp, r, strands, HTr=e["HTr"], c=strands_c)
         if e2["bound"] < best:
             best, source = e2["bound"], "strands"
     absolute = problem.f_scale * math.sqrt(problem.w_scale) * best
@@ -436,13 +444,30 @@ def solve_inverse_problem(problem: InverseProblem, helix: sh.SuperHelix, params,
                 shown["sweeps"] = sweeps
                 postfix()
 
-            def stop(r, u, strands=None):  # the certified rest-curvature error: shown, and a stop rule (q0_tolerance)
+            def stop(r, u, strands=None, HTr=None, c=None):
+                """The certified rest-curvature error: shown, and a stop rule (q0_tolerance).  ADMM's ``HTr`` and
+                ``c`` (its generators' H^T r and H D h + b, run_admm(stop_products=True)); without them the products
+                are H's, and are kept with r for the final certificate."""
                 if strands is not None:  # ADMM's strand solves h: a second dual point (rest_curvature_error_bound)
                     last_strands["h"] = strands
-                shown["q0"] = rest_curvature_error_bound(problem, cp, r, u, line_search=False,
-                                                         strands=strands)["q0_error_bound"]
+                products = {} if HTr is None else None
+                if products is not None and strands is not None:
+                    # the forces as they will be returned (projected as below, bit for bit), so that the final
+                    # certificate can reuse this check's products with H
+                    from .solvers.certificate import project_forces  # kept off the CLI's start
+
+                    r, moved = project_forces(r, problem.mu)
+                    if moved > 0.0:
+                        u = None
+                shown["q0"] = rest_curvature_error_bound(problem, cp, r, u, line_search=False, strands=strands,
+                                                         HTr=HTr, strands_c=c, products=products)["q0_error_bound"]
+                if products is not None and strands is not None:
+                    last_strands["checked"] = (r, u, strands, products)
                 if math.isfinite(shown["q0"]):
-                    shown["history"].append((shown["sweeps"], shown["q0"]))
+                    history = shown["history"]
+                    if history and history[-1][0] == shown["sweeps"]:  # the same check redone with H (run_admm)
+                        history.pop()
+                    history.append((shown["sweeps"], shown["q0"]))
                 postfix()
                 if params.q0_tolerance is None:
                     return False
@@ -465,6 +490,7 @@ def solve_inverse_problem(problem: InverseProblem, helix: sh.SuperHelix, params,
                 gs_only["r0"] = np.asarray(initial_forces, dtype=np.float64).reshape(-1) / problem.f_scale
             if method == "admm":
                 gs_only["stop_strands"] = True
+                gs_only["stop_products"] = True
                 gs_only["state_out"] = admm_state
                 if initial_state is not None:
                     gs_only["initial_state"] = initial_state
@@ -504,8 +530,13 @@ def solve_inverse_problem(problem: InverseProblem, helix: sh.SuperHelix, params,
         out["stopped_on"] = "residual" if res.converged else "q0_tolerance"
     if feasible and bounded:
         # ADMM: also from its last strand solves (any dual point certifies r, even one a few iterations old)
-        bound = rest_curvature_error_bound(problem, cp, r, strands=last_strands.get("h") if res.method == "admm"
-                                           else None)
+        h = last_strands.get("h") if res.method == "admm" else None
+        known = {}
+        checked = last_strands.get("checked") if h is not None else None
+        if checked is not None and checked[2] is h and np.array_equal(checked[0], r):
+            # the forces and strand sums of the run's last check with H (the one that stopped it): its products
+            known = {"u": checked[1], "HTr": checked[3]["HTr"], "strands_c": checked[3]["strands_c"]}
+        bound = rest_curvature_error_bound(problem, cp, r, strands=h, **known)
         out["q0_error_bound"] = bound["q0_error_bound"]
         out["q0_error_bound_abs"] = bound["q0_error_bound_abs"]
         out["q0_bound_source"] = bound["q0_bound_source"]

@@ -738,6 +738,7 @@ def run_admm(
     initial_state: ADMMState | None = None,
     state_out: dict | None = None,
     geometry: HelixContacts | None = None,
+    stop_products: bool = False,
 ) -> ADMMOutcome:
     """Strand-split ADMM (module docstring) on a ContactProblem, SOC law.  Starts from r0 (projected onto the
     cones) or, without one, from ``warm_sweeps`` Gauss-Seidel sweeps.  Every ``check_every`` iterations: the
@@ -752,7 +753,14 @@ def run_admm(
     solve_contact_problem, whose result does not carry it).  ``geometry`` (admm_structured.HelixContacts: the
     Super-Helix groom and the contacts H was built from): the strand systems are solved through their
     semiseparable factors (admm_structured.StructuredSplit, O(elements + ends) per x-step) instead of dense
-    Cholesky factors, where D is diagonal (else, or without it, the dense StrandSplit)."""
+    Cholesky factors, where D is diagonal (else, or without it, the dense StrandSplit).
+    ``stop_products`` (with ``stop_strands``; used where the split is the structured one): the checks' products
+    come from the split's generators (StructuredSplit.check_products: H^T s, h, W s + b and H D h + b in two passes
+    over ends and elements, equal to the CSR H's to round-off, instead of four products with H) and stop is called
+    stop(r, u, h, HTr=H^T r, c=H D h + b).  A check that would end the run is redone on the same forces with the
+    CSR H: the residual from u = W s + b through H (the run stops at tol only on that), and stop(r, u, h) again
+    (no products given: the caller computes its own from H); the run stops by the rule only if that call says so.
+    So no run stops on a number not computed with H on its returned forces."""
     from .certificate import project_forces
 
     if not 0.0 < alpha < 2.0:
@@ -805,13 +813,26 @@ def run_admm(
         emax, _ = _res.residual_max_rms(SOC, r, u.reshape(m, 3), mu, rho)
         return emax / scale, u
 
-    res, u = measure(s)
+    fast = bool(stop_products and stop_strands and hasattr(split, "check_products"))
+
+    def check(x):
+        """(residual, u, h, HTs, c) of s after the x-step that gave x: through the split's generators where
+        ``fast`` (residual then confirmed with H where it is within tol), else with H (h, HTs, c: None)."""
+        if fast:
+            HTs, h, uf, c = split.check_products(s, x, b)
+            emax, _ = _res.residual_max_rms(SOC, s, uf.reshape(m, 3), mu, rho)
+            if not emax / scale <= tol:
+                return emax / scale, uf, h, HTs, c
+        res_, u_ = measure(s)
+        return res_, u_, None, None, None
+
+    x = np.zeros((split.n_ends, 3))
+    res, u, *_ = check(x)
     history = [(0, res, time.perf_counter() - t0)]
     nxt = np.empty_like(z)
     f = np.empty(3 * E)
     mixer = AndersonMixer(3 * E, anderson) if anderson > 0 else None
     w = np.empty((E, 3))
-    x = np.empty((E, 3))
     gamma2 = 2.0 * problem.gamma
     restarts = 0
     k = 0
@@ -828,16 +849,27 @@ def run_admm(
             np.subtract(nxt.reshape(-1), zf, out=f)
             restarts += mixer.guarded_step(zf, f, zf)
         if k % check_every == 0 or k >= max_iter:
-            res, u = measure(s)
+            res, u, h, HTs, c = check(x)
             history.append((k, res, time.perf_counter() - t0))
             if callback is not None:
                 callback(k, res)
             if res <= tol or not math.isfinite(res):
                 break
-            if stop is not None and (stop(s.reshape(-1).copy(), u, split.strand_sum(x)) if stop_strands
-                                     else stop(s.reshape(-1).copy(), u)):
-                by_rule = True
-                break
+            if stop is not None:
+                r_now = s.reshape(-1).copy()
+                if not stop_strands:
+                    hit = stop(r_now, u)
+                elif HTs is not None:  # the generators' products; a stop is confirmed with H's
+                    hit = stop(r_now, u, h, HTr=HTs, c=c)
+                    if hit:
+                        res, u = measure(s)
+                        history[-1] = (k, res, time.perf_counter() - t0)
+                        hit = res <= tol or stop(r_now, u, h)
+                else:
+                    hit = stop(r_now, u, split.strand_sum(x))
+                if hit:
+                    by_rule = res > tol
+                    break
             if time_limit is not None and time.perf_counter() - t0 > time_limit:
                 break
     if history[-1][0] != k:

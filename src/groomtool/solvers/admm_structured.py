@@ -261,6 +261,90 @@ def _x_step_strands(strands, offsets, strand_ptr, elem, P, O, G, L, W, later, rh
 
 
 @njit(cache=True)
+def _gather_two(strands, offsets, strand_ptr, elem, P, O, G, y1, y2, out1, out2):
+    """out_j = sum_e J_e^T y_j,e (j = 1, 2) as flat dof vectors (element k of the groom: dofs 3k..3k+2), the ends'
+    y in strand order: per strand the suffix sums from the tip, t_k = G_k^T sum_{b(e)>k} P_e^T y_e +
+    sum_{b(e)=k} O_e^T y_e (the x-step's gather; dofs of strands without ends are left alone)."""
+    a1 = np.zeros(6)
+    a2 = np.zeros(6)
+    for q in range(strands.shape[0]):
+        s = strands[q]
+        e0, e1 = offsets[s], offsets[s + 1]
+        a1[:] = 0.0
+        a2[:] = 0.0
+        p = strand_ptr[s + 1] - 1
+        for k in range(e1 - e0 - 1, -1, -1):
+            j = e0 + k
+            for c in range(3):
+                t1 = 0.0
+                t2 = 0.0
+                for a in range(6):
+                    t1 += G[j, a, c] * a1[a]
+                    t2 += G[j, a, c] * a2[a]
+                out1[3 * j + c] = t1
+                out2[3 * j + c] = t2
+            while p >= strand_ptr[s] and elem[p] == k:
+                u0, u1, u2 = y1[p, 0], y1[p, 1], y1[p, 2]
+                v0, v1, v2 = y2[p, 0], y2[p, 1], y2[p, 2]
+                for c in range(3):
+                    out1[3 * j + c] += O[p, 0, c] * u0 + O[p, 1, c] * u1 + O[p, 2, c] * u2
+                    out2[3 * j + c] += O[p, 0, c] * v0 + O[p, 1, c] * v1 + O[p, 2, c] * v2
+                for a in range(6):
+                    a1[a] += P[p, 0, a] * u0 + P[p, 1, a] * u1 + P[p, 2, a] * u2
+                    a2[a] += P[p, 0, a] * v0 + P[p, 1, a] * v1 + P[p, 2, a] * v2
+                p -= 1
+
+
+@njit(cache=True)
+def _scatter_two(strands, offsets, strand_ptr, elem, P, O, G, t1, t2, out1, out2):
+    """out_j,e = J_e t_j (j = 1, 2) per end in strand order for flat dof vectors t_j: per strand the prefix sums
+    from the root, J_e t = P_e sum_{k<b(e)} G_k t_k + O_e t_b (the x-step's scatter)."""
+    a1 = np.zeros(6)
+    a2 = np.zeros(6)
+    for q in range(strands.shape[0]):
+        s = strands[q]
+        e0, e1 = offsets[s], offsets[s + 1]
+        a1[:] = 0.0
+        a2[:] = 0.0
+        p = strand_ptr[s]
+        for k in range(e1 - e0):
+            j = e0 + k
+            u0, u1, u2 = t1[3 * j], t1[3 * j + 1], t1[3 * j + 2]
+            v0, v1, v2 = t2[3 * j], t2[3 * j + 1], t2[3 * j + 2]
+            while p < strand_ptr[s + 1] and elem[p] == k:
+                for a in range(3):
+                    f1 = O[p, a, 0] * u0 + O[p, a, 1] * u1 + O[p, a, 2] * u2
+                    f2 = O[p, a, 0] * v0 + O[p, a, 1] * v1 + O[p, a, 2] * v2
+                    for b in range(6):
+                        f1 += P[p, a, b] * a1[b]
+                        f2 += P[p, a, b] * a2[b]
+                    out1[p, a] = f1
+                    out2[p, a] = f2
+                p += 1
+            for a in range(6):
+                a1[a] += G[j, a, 0] * u0 + G[j, a, 1] * u1 + G[j, a, 2] * u2
+                a2[a] += G[j, a, 0] * v0 + G[j, a, 1] * v1 + G[j, a, 2] * v2
+
+
+@njit(cache=True)
+def _contact_rows_in_order(contact_sorted, s, out):
+    """out[p] = s[contact_sorted[p]] (each end's contact force, the ends in strand order)."""
+    for p in range(contact_sorted.shape[0]):
+        i = contact_sorted[p]
+        out[p, 0], out[p, 1], out[p, 2] = s[i, 0], s[i, 1], s[i, 2]
+
+
+@njit(cache=True)
+def _contact_sums(contact_sorted, v1, v2, out1, out2):
+    """out_j,i += sum of v_j over the ends of contact i (v_j in strand order, contact_sorted their contacts)."""
+    for p in range(contact_sorted.shape[0]):
+        i = contact_sorted[p]
+        for a in range(3):
+            out1[i, a] += v1[p, a]
+            out2[i, a] += v2[p, a]
+
+
+@njit(cache=True)
 def _permute_rows(a, order, out, inverse):
     """out[p] = a[order[p]] (inverse False: ends to strand order) or out[order[p]] = a[p] (inverse True); numpy's
     fancy assignment of the (E, 3) rows took 15 ms on harolongo, this 2.5 ms."""
@@ -415,6 +499,36 @@ class StructuredSplit:
         _x_step_strands(self.active, self.offsets, self.strand_ptr, self.elem, self.P, self.O, self.G, self.L, self.W,
                         self.later, self._rho_sorted, ws, xs, self._y)
         _permute_rows(xs, self.ends_sorted, x, True)
+
+    def check_products(self, s, x, b):
+        """What a check of the ADMM run needs, through the generators instead of the CSR H (equal to round-off; two
+        passes over the ends and elements, no product with H): for the forces s (m, 3), the last x-step's copies
+        x (E, 3) and b (m, 3)
+
+            HTs = H^T s = sum_e J_e^T s_c(e),   h = sum_e J_e^T x_e (the strand sum),
+            u = H D HTs + 2 gamma s + b (= W s + b),   c = H D h + b  (the strand certificate's A l + b).
+
+        Returns (HTs, h, u, c): (n,), (n,), (3m,), (3m,).  Dofs of strands without ends: 0 in HTs and h."""
+        E = self.n_ends
+        m = s.shape[0]
+        se = np.empty((E, 3))
+        if getattr(self, "_contact_sorted", None) is None:
+            self._contact_sorted = np.ascontiguousarray(self.end_contact[self.ends_sorted])
+        _contact_rows_in_order(self._contact_sorted, np.ascontiguousarray(s), se)
+        xs = self._in_order[1]
+        _permute_rows(np.ascontiguousarray(x), self.ends_sorted, xs, False)
+        HTs = np.zeros(self.n_dofs)
+        h = np.zeros(self.n_dofs)
+        _gather_two(self.active, self.offsets, self.strand_ptr, self.elem, self.P, self.O, self.G, se, xs, HTs, h)
+        d = self.D_data
+        v1 = np.empty((E, 3))
+        v2 = np.empty((E, 3))
+        _scatter_two(self.active, self.offsets, self.strand_ptr, self.elem, self.P, self.O, self.G, d * HTs, d * h,
+                     v1, v2)
+        u = 2.0 * self.gamma * s + b
+        c = np.array(b, dtype=np.float64, copy=True).reshape(m, 3)
+        _contact_sums(self._contact_sorted, v1, v2, u, c)
+        return HTs, h, u.reshape(-1), c.reshape(-1)
 
     def strand_sum(self, x) -> np.ndarray:
         """h = sum_e J_e^T x_e (n,) (admm.StrandSplit.strand_sum)."""

@@ -93,16 +93,17 @@ def duality_gap(r, u, mu, gamma: float) -> float:
     return float(phi.sum() / (4.0 * gamma))
 
 
-def error_bound(problem, r, u=None, line_search: bool = True) -> dict:
+def error_bound(problem, r, u=None, line_search: bool = True, HTr=None) -> dict:
     """Certified bound on |A^T (r - r*)| (= |D^1/2 H^T (r - r*)|) for r in the cones of ``problem``
     (a ContactProblem; r (3m,)).  Returns {"bound", "gap", "norm_y" (= |A^T r|), "line_search_t", "HTr"
     (H^T r, (n,))}.
-    ``line_search`` (diagonal D only) tries better dual points along y + t (A^T r(y) - y)."""
+    ``line_search`` (diagonal D only) tries better dual points along y + t (A^T r(y) - y).  ``u`` (W r + b) and
+    ``HTr`` (H^T r): when already known."""
     r = np.asarray(r, dtype=np.float64).reshape(-1)
     gamma = problem.gamma
     mu = problem.mu
     sqrt_d = np.sqrt(problem.D_data) if problem.is_diagonal else None
-    Htr = problem.H.T @ r
+    Htr = problem.H.T @ r if HTr is None else np.asarray(HTr, dtype=np.float64).reshape(-1)
     out = {"gap": math.inf, "bound": math.inf, "norm_y": math.nan, "line_search_t": 0.0, "HTr": Htr}
     if sqrt_d is not None:
         y = sqrt_d * Htr
@@ -185,7 +186,7 @@ def _gap_and_bound(problem, r, c, delta2: float) -> tuple[float, float]:
     return gap, 0.5 * (math.sqrt(delta2) + math.sqrt(max(4.0 * gap - delta2, 0.0)))
 
 
-def error_bound_with_strands(problem, r, h, HTr=None) -> dict:
+def error_bound_with_strands(problem, r, h, HTr=None, c=None) -> dict:
     """Certified bound on |A^T (r - r*)| (A = H D^1/2) from forces r (in the cones) and the dual point
     l = D^1/2 h of a dof-space vector h, e.g. the strand-split ADMM's strand solves h = sum_e J_e^T x_e
     (admm.StrandSplit.strand_sum: each strand's own H^T of its copies x of the forces).  Any D (diagonal or
@@ -202,7 +203,8 @@ def error_bound_with_strands(problem, r, h, HTr=None) -> dict:
     is the module docstring's bound with l = y replaced by another l; nothing about l is assumed, so a stale or
     unconverged h is still certified.  At ADMM's iterates the phi terms nearly vanish (c is about the velocity
     the s-step projected against) and G is about the strands' disagreement |D^1/2 (H^T r - h)|^2 / 2, with no
-    1 / gamma factor (docs/solvers.md section 12).  Returns {"gap", "bound", "delta"}; inf without gamma."""
+    1 / gamma factor (docs/solvers.md section 12).  ``HTr`` (H^T r) and ``c`` (H D h + b): when already known.
+    Returns {"gap", "bound", "delta"}; inf without gamma."""
     if not problem.gamma > 0:
         return {"gap": math.inf, "bound": math.inf, "delta": math.nan}
     r = np.asarray(r, dtype=np.float64).reshape(-1)
@@ -210,5 +212,7 @@ def error_bound_with_strands(problem, r, h, HTr=None) -> dict:
     Htr = problem.H.T @ r if HTr is None else np.asarray(HTr, dtype=np.float64).reshape(-1)
     e = Htr - h
     delta2 = max(float(e @ problem.D_apply(e)), 0.0)
-    gap, bound = _gap_and_bound(problem, r, problem.H @ problem.D_apply(h) + problem.b, delta2)
+    if c is None:
+        c = problem.H @ problem.D_apply(h) + problem.b
+    gap, bound = _gap_and_bound(problem, r, c, delta2)
     return {"gap": gap, "bound": bound, "delta": math.sqrt(delta2)}
