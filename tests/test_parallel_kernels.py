@@ -7,7 +7,6 @@ import numba
 import numpy as np
 import pytest
 
-from groomtool import stability
 from groomtool.material import Material
 from groomtool.rods import dynamics as dyn
 from groomtool.rods import superhelix as sh
@@ -52,8 +51,8 @@ def assert_same_bits(fn):
 
 
 def test_superhelix_kernels_give_the_same_bits_on_any_thread_count():
-    """kinematics (_element_kernel), gravity_force, gravity_force_jacobian_parts (_gravity_hessian_kernel) and
-    evaluate_positions (_position_kernel, more points than POINTS_PER_TASK)."""
+    """evaluate_positions (_position_kernel, more points than POINTS_PER_TASK), with the kinematics and gravity terms
+    the step computes beside it (serial kernels)."""
     helix = strands()
     rng = np.random.default_rng(1)
     n_points = 3 * sh.POINTS_PER_TASK + 7
@@ -89,9 +88,9 @@ def test_inertia_kernels_give_the_same_bits_on_any_thread_count():
 
 
 def test_step_matrix_kernels_give_the_same_bits_on_any_thread_count():
-    """factor_step_generators twice (fresh corrections, then kept ones: _structured_factor_kernel and the dense
-    _factor_kernel), then StrandFactors.solve / apply (_solve_kernel with zero and tip-zero right-hand sides,
-    _apply_kernel) and mass_apply (_mass_apply_kernel)."""
+    """factor_step_generators twice (fresh corrections, then kept ones: the dense path's _factor_kernel beside the
+    serial structured factors), then StrandFactors.solve (_solve_kernel, with zero and tip-zero right-hand sides),
+    apply and mass_apply."""
     helix = strands()
     mat = Material()
     inertia = dyn.Inertia.from_material(mat)
@@ -119,14 +118,6 @@ def test_step_matrix_kernels_give_the_same_bits_on_any_thread_count():
                         out.solve(rhs), out.apply(rhs), mass_apply(gens, x, counts)]
 
     assert_same_bits(run)
-
-
-def test_isolated_stiffness_ratios_give_the_same_bits_on_any_thread_count():
-    """stability.stiffness_ratios (_lambda_max_batch, one strand per iteration), chunks of several strands."""
-    helix = strands(S=45)
-    mat = Material()
-    assert_same_bits(lambda: [stability.stiffness_ratios(helix, mat.stiffness_diag, mat.linear_density, GRAVITY,
-                                                         chunk=16)])
 
 
 @pytest.mark.parametrize("command", [["invert", "groom.obj"], ["check", "out"], ["simulate", "out"]])

@@ -396,19 +396,10 @@ def _solve_kernel_strands(first, stop, data, ptr, sizes, structured, elem_ptr, L
             out[s, i] = x[n - 1 - i]
 
 
-@njit(cache=True, parallel=True)
-def _apply_kernel(data, ptr, sizes, structured, elem_ptr, L3, W, V, x, out):
-    """_apply_kernel_strands over all strands, STRANDS_PER_TASK a task, tasks in parallel."""
-    n = sizes.shape[0]
-    for task in prange((n + STRANDS_PER_TASK - 1) // STRANDS_PER_TASK):
-        _apply_kernel_strands(task * STRANDS_PER_TASK, min(n, (task + 1) * STRANDS_PER_TASK), data, ptr, sizes,
-            structured, elem_ptr, L3, W, V, x, out)
-
-
 @njit(cache=True)
-def _apply_kernel_strands(first, stop, data, ptr, sizes, structured, elem_ptr, L3, W, V, x, out):
+def _apply_kernel(data, ptr, sizes, structured, elem_ptr, L3, W, V, x, out):
     """out = P L L^T P x per strand (L stored tip first, P the reversal; dense or structured: StrandFactors)."""
-    for s in range(first, stop):
+    for s in range(sizes.shape[0]):
         n = sizes[s]
         if structured[s]:
             e0, e1 = elem_ptr[s], elem_ptr[s + 1]
@@ -719,25 +710,16 @@ def factor_step_generators(mass, gravity_parts, gravity_left, n_elements, correc
                          float(b_scale), out, first, first + S, first + rest, indefinite=status[rest] == 2)
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True)
 def _structured_factor_kernel(diag, later, earlier, a_s, Kd, k_s, G, Dg, X, b_s, n_elements, use, elem_start, L3, W,
                               V, status):
-    """_structured_factor_kernel_strands for every one of the strands, in parallel."""
-    for s in prange(diag.shape[0]):
-        _structured_factor_kernel_strands(s, s + 1, diag, later, earlier, a_s, Kd, k_s, G, Dg, X, b_s, n_elements,
-            use, elem_start, L3, W, V, status)
-
-
-@njit(cache=True)
-def _structured_factor_kernel_strands(first, stop, diag, later, earlier, a_s, Kd, k_s, G, Dg, X, b_s, n_elements, use,
-                                      elem_start, L3, W, V, status):
     """Per strand s with use[s] (factor_step_generators): the tip-first generators of P (a/2 + b) P and P Mhat P
     (element k -> n - 1 - k, each block's dofs reversed: later' = [B; Theta] reversed, earlier' = later_hat
     reversed), the first's factor as a test, the second's into L3, W, V from elem_start[s]; status 0, or 2 where
     either is not positive definite (then a/2 + b is not, as a + b = (a/2 + b) + a/2: the dense path takes it with
     the unstable-mode correction)."""
     r = later.shape[2]
-    for s in range(first, stop):
+    for s in range(diag.shape[0]):
         if not use[s]:
             continue
         n = n_elements[s]
@@ -787,18 +769,9 @@ def mass_apply(mass, x: np.ndarray, n_elements) -> np.ndarray:
     return out
 
 
-@njit(cache=True, parallel=True)
-def _mass_apply_kernel(diag, later, earlier, n_elements, x, out):
-    """_mass_apply_kernel_strands over all strands, STRANDS_PER_TASK a task, tasks in parallel."""
-    n = diag.shape[0]
-    for task in prange((n + STRANDS_PER_TASK - 1) // STRANDS_PER_TASK):
-        _mass_apply_kernel_strands(task * STRANDS_PER_TASK, min(n, (task + 1) * STRANDS_PER_TASK), diag, later,
-            earlier, n_elements, x, out)
-
-
 @njit(cache=True)
-def _mass_apply_kernel_strands(first, stop, diag, later, earlier, n_elements, x, out):
-    for s in range(first, stop):
+def _mass_apply_kernel(diag, later, earlier, n_elements, x, out):
+    for s in range(diag.shape[0]):
         n = n_elements[s]
         matvec_strand(diag[s], later[s], earlier[s], 0, n, x[s, :3 * n], out[s, :3 * n])
 

@@ -35,7 +35,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit, prange
+from numba import njit
 from threadpoolctl import threadpool_limits
 
 from . import semiseparable as ss
@@ -378,18 +378,12 @@ def _lambda_max(d, later, earlier, N, rtol, atol_eps, max_steps, lanczos_steps):
     return theta, False
 
 
-@njit(cache=True, error_model="numpy", parallel=True)
-def _lambda_max_batch(u, v, d, n_elements, rtol, atol_eps, max_steps, lanczos_steps, out, ok):
-    """out[s], ok[s]: _lambda_max of each strand's A (its own semiseparable form), the strands in parallel."""
-    for s in prange(u.shape[0]):
-        _lambda_max_strand(s, u, v, d, n_elements, rtol, atol_eps, max_steps, lanczos_steps, out, ok)
-
-
 @njit(cache=True, error_model="numpy")
-def _lambda_max_strand(s, u, v, d, n_elements, rtol, atol_eps, max_steps, lanczos_steps, out, ok):
-    N = n_elements[s]
-    later, earlier, _ = _semiseparable_form(u[s, :N], v[s, :N], N)
-    out[s], ok[s] = _lambda_max(d[s, :N], later, earlier, N, rtol, atol_eps, max_steps, lanczos_steps)
+def _lambda_max_batch(u, v, d, n_elements, rtol, atol_eps, max_steps, lanczos_steps, out, ok):
+    for s in range(u.shape[0]):
+        N = n_elements[s]
+        later, earlier, _ = _semiseparable_form(u[s, :N], v[s, :N], N)
+        out[s], ok[s] = _lambda_max(d[s, :N], later, earlier, N, rtol, atol_eps, max_steps, lanczos_steps)
 
 
 @njit(cache=True, error_model="numpy")

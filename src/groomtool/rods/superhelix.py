@@ -36,9 +36,8 @@ from numba import njit, prange
 from .series import _f23_point, _f_point, c_table
 
 E0 = np.array([1.0, 0.0, 0.0])
-# the compiled per-strand loops run in parallel (numba prange, NUMBA_NUM_THREADS / numba.set_num_threads) over tasks
-# of this many strands (points); each strand (point) writes only its own outputs, so any thread count gives the same
-# bits
+# compiled loops that run in parallel (numba prange; NUMBA_NUM_THREADS, numba.set_num_threads) over tasks of this many
+# strands (points); each strand (point) writes only its own outputs, so any thread count gives the same bits
 STRANDS_PER_TASK = 8
 POINTS_PER_TASK = 256
 
@@ -263,17 +262,8 @@ def _e0_jacobian(beta, dbeta, gamma, dgamma, w0, w1, w2, z, out):
                          + 2.0 * dgamma * w2v[a] * w[b])
 
 
-@njit(cache=True, parallel=True)
-def _element_kernel(l, w, z, c, dc, Q, psi1, p, P, D, DP):
-    """_element_kernel_strands over all strands, STRANDS_PER_TASK a task, tasks in parallel."""
-    n = l.shape[0]
-    for task in prange((n + STRANDS_PER_TASK - 1) // STRANDS_PER_TASK):
-        _element_kernel_strands(task * STRANDS_PER_TASK, min(n, (task + 1) * STRANDS_PER_TASK), l, w, z, c, dc, Q,
-            psi1, p, P, D, DP)
-
-
 @njit(cache=True)
-def _element_kernel_strands(first, stop, l, w, z, c, dc, Q, psi1, p, P, D, DP):
+def _element_kernel(l, w, z, c, dc, Q, psi1, p, P, D, DP):
     """Per element: z = |omega|^2, c_n and dc_n/dz (series.c_table), Q = Psi_0(l), Psi_1(l),
     p = Psi_1(l) e0, P = Psi_2(l) e0, D = dp/domega, DP = dP/domega."""
     buf = np.empty((3, 5))
@@ -282,7 +272,7 @@ def _element_kernel_strands(first, stop, l, w, z, c, dc, Q, psi1, p, P, D, DP):
     _f_point(0.0, 1, buf)
     f0_at_zero = buf[0, 0]
     S, N = l.shape
-    for s in range(first, stop):
+    for s in range(S):
         for j in range(N):
             ti = l[s, j]
             w0, w1, w2 = w[s, j, 0], w[s, j, 1], w[s, j, 2]
@@ -627,21 +617,12 @@ def gravity_force(helix: SuperHelix, linear_density: float, gravity, kin: Kinema
     return out
 
 
-@njit(cache=True, parallel=True)
-def _gravity_force_kernel(l, C, R, P, D, DP, Theta, g, rho, out):
-    """_gravity_force_kernel_strands over all strands, STRANDS_PER_TASK a task, tasks in parallel."""
-    n = l.shape[0]
-    for task in prange((n + STRANDS_PER_TASK - 1) // STRANDS_PER_TASK):
-        _gravity_force_kernel_strands(task * STRANDS_PER_TASK, min(n, (task + 1) * STRANDS_PER_TASK), l, C, R, P,
-            D, DP, Theta, g, rho, out)
-
-
 @njit(cache=True)
-def _gravity_force_kernel_strands(first, stop, l, C, R, P, D, DP, Theta, g, rho, out):
+def _gravity_force_kernel(l, C, R, P, D, DP, Theta, g, rho, out):
     """:func:`gravity_force` per strand, j from the tip: m and m1 = int C ds of the elements beyond j,
     X = m1 - m C_{j+1}; then element j joins them (int_element C ds = l_j C_j + R_j P_j)."""
     S, N = l.shape
-    for s in range(first, stop):
+    for s in range(S):
         m = 0.0
         m10 = m11 = m12 = 0.0
         for j in range(N - 1, -1, -1):
@@ -725,17 +706,8 @@ def _form_hessian_add(k, beta, dbeta, ddbeta, gamma, dgamma, ddgamma, w, z, u, v
                 out[b, a] += h
 
 
-@njit(cache=True, parallel=True)
-def _gravity_hessian_kernel(l, w, z, c, dc, ddc, C, R, P, D, DP, Theta, g, rho, U, G, diag):
-    """_gravity_hessian_kernel_strands over all strands, STRANDS_PER_TASK a task, tasks in parallel."""
-    n = l.shape[0]
-    for task in prange((n + STRANDS_PER_TASK - 1) // STRANDS_PER_TASK):
-        _gravity_hessian_kernel_strands(task * STRANDS_PER_TASK, min(n, (task + 1) * STRANDS_PER_TASK), l, w, z,
-            c, dc, ddc, C, R, P, D, DP, Theta, g, rho, U, G, diag)
-
-
 @njit(cache=True)
-def _gravity_hessian_kernel_strands(first, stop, l, w, z, c, dc, ddc, C, R, P, D, DP, Theta, g, rho, U, G, diag):
+def _gravity_hessian_kernel(l, w, z, c, dc, ddc, C, R, P, D, DP, Theta, g, rho, U, G, diag):
     """Per element j (suffix sums from the tip): m = L - S_{j+1}, X = int_{s > S_{j+1}} (C - C_{j+1}) ds,
     G_j = R_j DP_j + m R_j D_j - [X]x Theta_j, U_j = -rho Theta_j^T [g]x, and diag_j = rho * the Hessian of
     u . (P_j + m p_j + Q_j Y) in omega_j, u = R_j^T g, Y = R_{j+1}^T X."""
@@ -746,7 +718,7 @@ def _gravity_hessian_kernel_strands(first, stop, l, w, z, c, dc, ddc, C, R, P, D
     uj = np.empty(3)
     Yj = np.empty(3)
     hess = np.empty((3, 3))
-    for s in range(first, stop):
+    for s in range(S):
         m = 0.0
         m1 = np.zeros(3)  # first moment int C ds of the elements beyond j
         for j in range(N - 1, -1, -1):
