@@ -199,7 +199,9 @@ def test_constrained_top_eigenvalue_equals_the_null_space_route():
         assert_ratios_close([new], [ref], [3 * np.linalg.norm(A)])
         u, v, d, N = generators(helix, s)
         later, earlier, _ = stability._semiseparable_form(u, v, N)
-        fast, certified = stability.held_top_eigenvalue(d, later, earlier, C)
+        rows = np.zeros((0, 3 * N)) if C is None else np.ascontiguousarray(C)
+        fast, certified = stability._held_lambda_max(d, later, earlier, N, rows, stability.RTOL, stability.ATOL_EPS,
+                                                     stability.MAX_STEPS, stability.LANCZOS_STEPS)
         assert certified
         assert_ratios_close([fast], [ref], [3 * np.linalg.norm(A)])
     iso = stiffness_ratios(helix, MAT.stiffness_diag, MAT.linear_density, G)
@@ -231,7 +233,8 @@ def test_held_top_eigenvalue_equals_the_dense_null_space_route(seed, scale, k, c
     Z = scipy.linalg.null_space(C)
     ref = np.linalg.eigvalsh(Z.T @ A @ Z)[-1] if Z.shape[1] else 0.0
     later, earlier, _ = stability._semiseparable_form(u, v, N)
-    fast, certified = stability.held_top_eigenvalue(d, later, earlier, C)
+    fast, certified = stability._held_lambda_max(d, later, earlier, N, np.ascontiguousarray(C), stability.RTOL,
+                                                 stability.ATOL_EPS, stability.MAX_STEPS, stability.LANCZOS_STEPS)
     assert certified
     assert_ratios_close([fast], [ref], [3 * np.linalg.norm(A)])
 

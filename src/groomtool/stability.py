@@ -428,24 +428,73 @@ def _projected_form(d, later, earlier, N, Q, beta):
     return d_b, later_b, earlier_b
 
 
-def held_top_eigenvalue(d, later, earlier, C: np.ndarray | None) -> tuple[float, bool]:
+@njit(cache=True, error_model="numpy")
+def _held_lambda_max(d, later, earlier, N, C, rtol, atol_eps, max_steps, lanczos_steps):
     """(lambda_max of A on null(C), certified) in O(N k^2) for one Super-Helix strand, A in semiseparable form
-    (diagonal blocks d (N, 3, 3), lower blocks later_k^T earlier_j): the certified lambda_max of
-    B = P A P - beta Q^T Q (:func:`_projected_form`; Q the orthonormal rows of C's row space by
+    (diagonal blocks d (N, 3, 3), lower blocks later_k^T earlier_j), C (k, 3 N) its blocking rows: the certified
+    lambda_max of B = P A P - beta Q^T Q (:func:`_projected_form`; Q the orthonormal rows of C's row space by
     :func:`constrained_top_eigenvalue`'s rank rule, beta = 2 ||A||_F + 1).  0 when the rows block every motion."""
-    N = len(d)
-    d = np.ascontiguousarray(d, dtype=np.float64)
-    later = np.ascontiguousarray(later, dtype=np.float64)
-    earlier = np.ascontiguousarray(earlier, dtype=np.float64)
-    if C is not None and len(C):
+    k = C.shape[0]
+    if k > 0 and N > 0:
         _, sv, Vh = np.linalg.svd(C, full_matrices=False)
-        rank = int(np.count_nonzero(sv > (sv.max() if len(sv) else 0.0) * np.finfo(float).eps * max(C.shape)))
+        cut = sv.max() * 2.220446049250313e-16 * max(k, 3 * N)
+        rank = 0
+        for i in range(sv.shape[0]):
+            if sv[i] > cut:
+                rank += 1
         if rank >= 3 * N:
             return 0.0, True
-        if rank:
+        if rank > 0:
             beta = 2.0 * _frobenius(d, later, earlier, N) + 1.0
             d, later, earlier = _projected_form(d, later, earlier, N, np.ascontiguousarray(Vh[:rank]), beta)
-    return _lambda_max(d, later, earlier, N, RTOL, ATOL_EPS, MAX_STEPS, LANCZOS_STEPS)
+    return _lambda_max(d, later, earlier, N, rtol, atol_eps, max_steps, lanczos_steps)
+
+
+@njit(cache=True, error_model="numpy")
+def _held_batch(U, A_gen, diag, n_elements, C, c_ptr, rtol, atol_eps, max_steps, lanczos_steps, out, ok):
+    """_held_lambda_max of each strand i of a chunk: its A from the whitened generators (u_j = U_j, v_k = A_k^T:
+    later_k = A_k, earlier_j = U_j^T), its blocking rows C[c_ptr[i]:c_ptr[i + 1], :3 N] (none: the whole A)."""
+    for i in range(U.shape[0]):
+        N = n_elements[i]
+        later = np.empty((N, 3, 3))
+        earlier = np.empty((N, 3, 3))
+        for j in range(N):
+            for a in range(3):
+                for b in range(3):
+                    later[j, a, b] = A_gen[i, j, a, b]
+                    earlier[j, a, b] = U[i, j, b, a]
+        rows = np.ascontiguousarray(C[c_ptr[i]:c_ptr[i + 1], :3 * N])
+        out[i], ok[i] = _held_lambda_max(np.ascontiguousarray(diag[i, :N]), later, earlier, N, rows, rtol, atol_eps,
+                                         max_steps, lanczos_steps)
+
+
+def _blocking_rows(head_ids, head_stick, lo, hi):
+    """The rows of H that block each strand (docs/stability.md): per strand, those of its loaded head contacts
+    head_ids[lo_i:hi_i] (all three for a sticking one, the normal row else), back to back; (rows, ptr)."""
+    lens = hi - lo
+    first = np.repeat(lo - np.concatenate([[0], np.cumsum(lens)[:-1]]), lens) + np.arange(lens.sum())
+    contact, stick = head_ids[first], head_stick[first]
+    count = np.where(stick, 3, 1)
+    start = np.cumsum(count) - count
+    rows = np.repeat(3 * contact, count) + np.arange(count.sum()) - np.repeat(start, count)
+    per_strand = np.bincount(np.repeat(np.arange(len(lens)), lens), weights=count, minlength=len(lens))
+    ptr = np.zeros(len(lens) + 1, dtype=np.int64)
+    np.cumsum(per_strand.astype(np.int64), out=ptr[1:])
+    return rows.astype(np.int64), ptr
+
+
+@njit(cache=True)
+def _scaled_rows(indptr, indices, data, rows, ptr, col0, n_elements, sc, out):
+    """out[p] = row rows[p] of H over the columns of chunk strand i (p in ptr[i]:ptr[i + 1]), from col0[i], times the
+    whitening sc[i] (K^-1/2 per dof)."""
+    for i in range(ptr.shape[0] - 1):
+        n = 3 * n_elements[i]
+        for p in range(ptr[i], ptr[i + 1]):
+            r = rows[p]
+            for q in range(indptr[r], indptr[r + 1]):
+                c = indices[q] - col0[i]
+                if 0 <= c < n:
+                    out[p, c] += data[q] * sc[i, c // 3, c % 3]
 
 
 def _csr_block(H, rows, c0, c1) -> np.ndarray:
@@ -630,7 +679,7 @@ def held_stiffness_ratios(helix: sh.SuperHelix, stiffness_diag, linear_density: 
 
     Strands that no loaded contact touches keep their isolated ratio (``isolated_ratios`` or computed).
     Super-Helices in O(N k^2) per strand (k blocking rows): certified as the isolated ratios are, on
-    P A P - beta Q^T Q (:func:`held_top_eigenvalue`); clothoids, and a strand not certified, by the dense
+    P A P - beta Q^T Q (:func:`_held_lambda_max`); clothoids, and a strand not certified, by the dense
     eigvalsh of the reduced matrix (:func:`constrained_top_eigenvalue`)."""
     S = helix.n_strands
     forces = np.asarray(forces, dtype=np.float64).reshape(-1, 3)
@@ -700,57 +749,44 @@ def held_stiffness_ratios(helix: sh.SuperHelix, stiffness_diag, linear_density: 
                 U *= sc[..., :, None]
                 A_gen *= sc[..., None, :]
                 diag *= sc[..., :, None] * sc[..., None, :]
-            free = []  # Super-Helix strands that no head contact blocks: lambda_max(A) in O(N) below
+            lo = np.searchsorted(head_strand, ids)
+            hi = np.searchsorted(head_strand, ids + 1)
+            if not clothoid:
+                # every strand in O(N k^2): lambda_max of A = K^-1/2 (dF/dq + dF_c/dq) K^-1/2 on the null space of its
+                # blocking rows (none: the whole A, in the form of gravity's alone), certified as the isolated ratios
+                # are; the dense route where that is not certified
+                rows, ptr = _blocking_rows(head_ids, head_stick, lo, hi)
+                n_el = np.ascontiguousarray(sub.n_elements, dtype=np.int64)
+                C = np.zeros((len(rows), 3 * int(n_el.max()) if len(n_el) else 0))
+                _scaled_rows(H.indptr, H.indices, H.data, rows, ptr, np.ascontiguousarray(cols[ids], dtype=np.int64),
+                             n_el, np.ascontiguousarray(sc), C)
+                lam = np.empty(len(ids))
+                ok = np.empty(len(ids), dtype=np.bool_)
+                _held_batch(np.ascontiguousarray(U), np.ascontiguousarray(A_gen), np.ascontiguousarray(diag), n_el, C,
+                            ptr, RTOL, ATOL_EPS, MAX_STEPS, LANCZOS_STEPS, lam, ok)
+                for i in np.flatnonzero(~ok):
+                    N = int(n_el[i])
+                    lam[i] = constrained_top_eigenvalue(_assemble_one(U, A_gen, diag, i, N), C[ptr[i]:ptr[i + 1], :3 * N])
+                ratio[ids] = lam
+                blocked_count[ids] = np.diff(ptr)
+                if progress is not None:
+                    progress.update(len(ids))
+                continue
             for i, s in enumerate(ids):
-                lo, hi = np.searchsorted(head_strand, [s, s + 1])
-                if not clothoid and hi == lo:
-                    free.append(i)
-                    continue
-                if clothoid:
-                    n = 3 * (int(sub.n_elements[i]) + 1)
-                    Wm = _clothoid_whitening(K[i, :n, :n])
-                    A = Wm.T @ (dF[i, :n, :n] + hessians[pos[i]]) @ Wm
-                    A = 0.5 * (A + A.T)
-                else:
-                    n = 3 * int(sub.n_elements[i])
-                    scale = sc[i, :n // 3].reshape(-1)
+                n = 3 * (int(sub.n_elements[i]) + 1)
+                Wm = _clothoid_whitening(K[i, :n, :n])
+                A = Wm.T @ (dF[i, :n, :n] + hessians[pos[i]]) @ Wm
+                A = 0.5 * (A + A.T)
                 rows = [3 * c + np.arange(3) if stick else np.array([3 * c])
-                        for c, stick in zip(head_ids[lo:hi], head_stick[lo:hi])]
+                        for c, stick in zip(head_ids[lo[i]:hi[i]], head_stick[lo[i]:hi[i]])]
                 C = None
                 if rows:
                     rows = np.concatenate(rows)
-                    C = _csr_block(H, rows, cols[s], cols[s] + n)
-                    C = C @ Wm if clothoid else C * scale[None, :]
+                    C = _csr_block(H, rows, cols[s], cols[s] + n) @ Wm
                     blocked_count[s] = len(rows)
-                if clothoid:
-                    ratio[s] = constrained_top_eigenvalue(A, C)
-                else:  # O(N k^2) on the null space of the blocking rows, the dense route where not certified
-                    Ni = n // 3
-                    later, earlier, _ = _semiseparable_form(U[i, :Ni], np.ascontiguousarray(np.swapaxes(A_gen[i, :Ni], -1, -2)),
-                                                            Ni)
-                    lam, certified = held_top_eigenvalue(diag[i, :Ni], later, earlier, C)
-                    ratio[s] = lam if certified else constrained_top_eigenvalue(_assemble_one(U, A_gen, diag, i, Ni), C)
+                ratio[s] = constrained_top_eigenvalue(A, C)
                 if progress is not None:
                     progress.update(1)
-            if free:
-                # nothing blocks these strands: lambda_max of the whole A = K^-1/2 (dF/dq + dF_c/dq) K^-1/2, whose
-                # generators have the form of gravity's alone (u_j = U_j, v_k = A_k^T), certified in O(N) as the
-                # isolated ratios are (stiffness_ratios; the dense eigvalsh where that is not certified).  On
-                # harolongo with all contacts ~3,200 of 7,900 strands per check
-                free = np.asarray(free)
-                u = np.ascontiguousarray(U[free])
-                v = np.ascontiguousarray(np.swapaxes(A_gen[free], -1, -2))
-                d = np.ascontiguousarray(diag[free])
-                n_el = np.ascontiguousarray(sub.n_elements[free], dtype=np.int64)
-                lam = np.empty(len(free))
-                ok = np.empty(len(free), dtype=np.bool_)
-                _lambda_max_batch(u, v, d, n_el, RTOL, ATOL_EPS, MAX_STEPS, LANCZOS_STEPS, lam, ok)
-                for j in np.flatnonzero(~ok):
-                    lam[j] = constrained_top_eigenvalue(_assemble_one(U, A_gen, diag, int(free[j]),
-                                                                      int(n_el[j])), None)
-                ratio[ids[free]] = lam
-                if progress is not None:
-                    progress.update(len(free))
     return result
 
 
