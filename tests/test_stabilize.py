@@ -435,8 +435,9 @@ def test_stiffening_step_extrapolates_the_growth_of_a_raised_strand():
 
 def test_strands_no_head_contact_blocks_take_the_certified_route_with_the_dense_result(draped, monkeypatch):
     """Loaded strands without loaded head contacts (nothing blocks them) get lambda_max of the whole
-    K^-1/2 (dF/dq + dF_c/dq) K^-1/2 from its generators in O(N) (stability._lambda_max); the same numbers as the
-    dense eigvalsh it replaced (forced here by a batch that certifies nothing), to 1e-10."""
+    K^-1/2 (dF/dq + dF_c/dq) K^-1/2 from its generators in O(N) (stability._lambda_max), and blocked ones on the null
+    space of their rows in O(N k^2): the same numbers as the dense eigvalsh they replaced (forced here by a batch
+    that certifies nothing), to 1e-10."""
     import groomtool.stability as stability
 
     _, res = draped
@@ -450,11 +451,20 @@ def test_strands_no_head_contact_blocks_take_the_certified_route_with_the_dense_
     fast = held_stiffness_ratios(helix, MAT.stiffness_diag, MAT.linear_density, G, c, r, H, MAT.friction)
     assert np.count_nonzero(fast.kind == 1) >= 2 and np.all(fast.blocked_rows == 0)
 
-    def certifies_nothing(u, v, d, n_elements, *args):
-        args[-1][:] = False
+    blocked = held_stiffness_ratios(helix, MAT.stiffness_diag, MAT.linear_density, G, c, res.forces, H, MAT.friction)
+    assert np.any(blocked.blocked_rows > 0)
 
-    monkeypatch.setattr(stability, "_lambda_max_batch", certifies_nothing)
+    def certifies_nothing(*args):
+        args[-1][:] = False  # ok: no strand certified, every one takes the dense route
+
+    monkeypatch.setattr(stability, "_held_batch", certifies_nothing)
     dense = held_stiffness_ratios(helix, MAT.stiffness_diag, MAT.linear_density, G, c, r, H, MAT.friction)
     np.testing.assert_allclose(fast.ratio, dense.ratio, rtol=1e-10)
     iso = stiffness_ratios(helix, MAT.stiffness_diag, MAT.linear_density, G)
     assert np.any(np.abs(fast.ratio - iso) > 1e-3 * np.abs(iso))  # the loads count
+    # strands their head contacts block: the O(N k^2) route (P A P - beta Q^T Q) against the dense null space route
+    dense_blocked = held_stiffness_ratios(helix, MAT.stiffness_diag, MAT.linear_density, G, c, res.forces, H,
+                                          MAT.friction)
+    norms = np.maximum(np.abs(dense_blocked.ratio), 1.0)
+    assert np.all(np.abs(blocked.ratio - dense_blocked.ratio) <= 1e-10 * norms)
+    np.testing.assert_array_equal(blocked.blocked_rows, dense_blocked.blocked_rows)
