@@ -12,11 +12,10 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.sparse as sp
-from numba import njit, prange
+from numba import njit
 from scipy.linalg import lapack
 
 from .rods.dynamics import MassGenerators
-from .rods.superhelix import STRANDS_PER_TASK
 from .semiseparable import factor_strand, matvec_strand, solve_lower_strand, solve_upper_strand
 
 
@@ -357,21 +356,12 @@ def _trailing_block(data, o, n, k):
     return out
 
 
-@njit(cache=True, parallel=True)
-def _solve_kernel(data, ptr, sizes, structured, elem_ptr, L3, W, V, rhs, out):
-    """_solve_kernel_strands over all strands, STRANDS_PER_TASK a task, tasks in parallel."""
-    n = sizes.shape[0]
-    for task in prange((n + STRANDS_PER_TASK - 1) // STRANDS_PER_TASK):
-        _solve_kernel_strands(task * STRANDS_PER_TASK, min(n, (task + 1) * STRANDS_PER_TASK), data, ptr, sizes,
-            structured, elem_ptr, L3, W, V, rhs, out)
-
-
 @njit(cache=True)
-def _solve_kernel_strands(first, stop, data, ptr, sizes, structured, elem_ptr, L3, W, V, rhs, out):
+def _solve_kernel(data, ptr, sizes, structured, elem_ptr, L3, W, V, rhs, out):
     """x = P (L L^T)^-1 P rhs per strand (L stored tip first, P the reversal; dense or structured: StrandFactors).  A
     zero rhs gives x = 0 without a solve, and the forward substitution starts at the first non-zero of P rhs (a
     right-hand side H^T r on the dofs up to a strand's farthest contact is zero towards the tip): the same x."""
-    for s in range(first, stop):
+    for s in range(sizes.shape[0]):
         n = sizes[s]
         first = n
         for i in range(n):
@@ -467,18 +457,9 @@ def _try_cholesky(a):
         return a, False
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True)
 def _factor_kernel(A, a_scale, Kd, k_scale, B, U, G, Dg, b_scale, n_elements, corr_start, corr, out_data, out_ptr,
                    status):
-    """_factor_kernel_strands for every one of the strands, in parallel."""
-    for s in prange(A.shape[0]):
-        _factor_kernel_strands(s, s + 1, A, a_scale, Kd, k_scale, B, U, G, Dg, b_scale, n_elements, corr_start,
-            corr, out_data, out_ptr, status)
-
-
-@njit(cache=True)
-def _factor_kernel_strands(first, stop, A, a_scale, Kd, k_scale, B, U, G, Dg, b_scale, n_elements, corr_start, corr,
-                           out_data, out_ptr, status):
     """Per strand, on its 3 N_s real dofs: a = a_scale A + diag(k_scale Kd), b = b_scale B (B dense, or
     when B is empty the symmetric matrix with blocks U_j G_k for j < k and Dg_j on the diagonal: the
     generators of superhelix.gravity_force_jacobian, never stored densely); if a/2 + b is positive
@@ -487,7 +468,7 @@ def _factor_kernel_strands(first, stop, A, a_scale, Kd, k_scale, B, U, G, Dg, b_
     is needed: done by the caller).  A strand with status 3 on entry skips the test of a/2 + b (known not
     positive definite).  The Cholesky factors are of the matrices with the dofs reversed (tip first,
     StrandFactors); L goes to out_data[out_ptr[s]:] (packed lower triangle)."""
-    for s in range(first, stop):
+    for s in range(A.shape[0]):
         n = 3 * n_elements[s]
         a = np.empty((n, n))
         b = np.empty((n, n))

@@ -23,8 +23,8 @@ exit codes: 0 every groom inverted (or skipped), 1 an input error (or a crash / 
             often) for at least one groom, 2 otherwise: some contact solve did not converge
 """
 
-# invert options the batch does not take over: its own input, output and quiet, and --threads
-_NOT_SHARED = {"help", "input", "output", "quiet", "threads"}  # threads: one per worker (groomtool.batch)
+# invert options the batch does not take over: its own input, output and quiet
+_NOT_SHARED = {"help", "input", "output", "quiet"}
 
 
 def add_parser(sub, invert_parser: argparse.ArgumentParser) -> argparse.ArgumentParser:

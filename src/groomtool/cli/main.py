@@ -17,8 +17,7 @@ from ..solver_choice import Q0_TOLERANCE  # --q0-tolerance default (docs/solvers
 from ..version import __version__
 from . import batch_cmd, export_cmd, simulate_cmd, view_cmd
 from .options import (EXIT_INTERNAL_ERROR, EXIT_NOT_CONVERGED, EXIT_OK, EXIT_USER_ERROR, MODEL_CHOICES, UserError,
-                      add_input_options, add_material_options, add_scale_option, add_threads_option, cli_message,
-                      invert_params, set_threads)
+                      add_input_options, add_material_options, add_scale_option, cli_message, invert_params)
 
 
 class _Parser(argparse.ArgumentParser):
@@ -115,7 +114,6 @@ def build_parser() -> argparse.ArgumentParser:
                           "curvature linear per element and continuous, C2; docs/clothoid.md; every command and exporter "
                           "reads its results)")
     add_material_options(inv)
-    add_threads_option(inv)
     inv.add_argument("-q", "--quiet", action="store_true", help="no progress bars and no summary")
 
     ex = sub.add_parser("example", help="write the bundled example groom (example.obj) and head (head.obj)",
@@ -410,7 +408,6 @@ def main(argv=None) -> int:
         return 130
     previous_showwarning, warnings.showwarning = warnings.showwarning, _one_line_warning
     try:
-        set_threads(args)
         return COMMANDS[args.command](args)
     except (GroomError, UserError, FileNotFoundError) as exc:
         print(f"groom {args.command}: error: {cli_message(str(exc))}", file=sys.stderr)

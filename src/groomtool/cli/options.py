@@ -52,26 +52,6 @@ def add_material_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--friction", type=float, default=d.friction, help=f"Coulomb friction coefficient (default {d.friction:g})")
 
 
-def add_threads_option(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--threads", type=int, default=None, metavar="N",
-                   help="threads of the compiled per-strand loops (numba.set_num_threads; default: numba's, "
-                        "NUMBA_NUM_THREADS or every core); the results are the same bits on any count")
-
-
-def set_threads(args) -> None:
-    """numba.set_num_threads(args.threads) when --threads was given (1 to numba's NUMBA_NUM_THREADS, fixed at start)."""
-    n = getattr(args, "threads", None)
-    if n is None:
-        return
-    import numba
-
-    most = numba.config.NUMBA_NUM_THREADS
-    if not 1 <= n <= most:
-        raise UserError(f"--threads must be 1 to {most} (numba's NUMBA_NUM_THREADS: the cores, unless the variable "
-                        f"sets it), got {n}")
-    numba.set_num_threads(n)
-
-
 def material_from_args(args) -> Material:
     return Material(young_modulus=args.young, radius=args.radius, density=args.density,
                     friction=args.friction, shear_modulus=args.shear)

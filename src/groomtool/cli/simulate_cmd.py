@@ -14,8 +14,7 @@ from pathlib import Path
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from .options import (DEFAULT_TOLERANCE_M, add_input_options, add_material_options, add_threads_option,
-                      material_from_args)
+from .options import DEFAULT_TOLERANCE_M, add_input_options, add_material_options, material_from_args
 
 EPILOG_SIMULATE = """examples:
   groom simulate out                      # an output directory of 'groom invert': its rest curvatures
@@ -48,7 +47,6 @@ def _add_simulation_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--air-drag", type=float, default=0.0,
                    help="air drag per unit length, kg/(m s): force -c v (default 0)")
     p.add_argument("--damping", type=float, default=0.0, help="mass-proportional damping, 1/s (default 0)")
-    add_threads_option(p)
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar and no summary")
 
 

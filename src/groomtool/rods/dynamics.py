@@ -39,11 +39,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit, prange
+from numba import njit
 
 from . import clothoid as cl
 from .series import _f_point
-from .superhelix import STRANDS_PER_TASK, Kinematics, SuperHelix, _e0_jacobian, kinematics
+from .superhelix import Kinematics, SuperHelix, _e0_jacobian, kinematics
 
 
 @dataclass(frozen=True)
@@ -281,25 +281,14 @@ def _local_frame(t, w, z, buf, psi0, psi1, Dt, p2, dpsi, u, want_motion):
         dpsi[a] = dz * (dc2 * wu[a] + dc3 * wwu[a]) + c3 * uwu[a]
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True)
 def _inertia_kernel(l, w, z, C, R, Dl, Theta, n_elements, xg, wg, rhoS, rot, u, root_om, root_acc, root_alpha,
                     want_mass, want_A, Md, Ml, Me, A):
-    """_inertia_strands over all strands, STRANDS_PER_TASK strands a task in parallel (each writes its own rows)."""
-    S = l.shape[0]
-    for c in prange((S + STRANDS_PER_TASK - 1) // STRANDS_PER_TASK):
-        _inertia_strands(c * STRANDS_PER_TASK, min(S, (c + 1) * STRANDS_PER_TASK), l, w, z, C, R, Dl, Theta,
-                         n_elements, xg, wg, rhoS, rot, u, root_om, root_acc, root_alpha, want_mass, want_A, Md, Ml,
-                         Me, A)
-
-
-@njit(cache=True)
-def _inertia_strands(first, stop, l, w, z, C, R, Dl, Theta, n_elements, xg, wg, rhoS, rot, u, root_om, root_acc,
-                     root_alpha, want_mass, want_A, Md, Ml, Me, A):
-    """For strands first .. stop - 1: the mass matrix's generators (MassGenerators: Md (S, N, 3, 3), Ml = right_k and
-    Me = [B_j; Theta_j] (S, N, 6, 3), written only with ``want_mass``) and A (S, N, 3, with ``want_A``) of
-    mass_matrix and velocity_terms in one pass per strand: per Gauss point the own-element Jacobians, world inertia
-    and (for A) the point accelerations; per element the moments; suffix sums beyond each node (module docstring)."""
-    N = l.shape[1]
+    """The mass matrix's generators (MassGenerators: Md (S, N, 3, 3), Ml = right_k and Me = [B_j; Theta_j]
+    (S, N, 6, 3), written only with ``want_mass``) and A (S, N, 3, with ``want_A``) of mass_matrix and velocity_terms
+    in one pass per strand: per Gauss point the own-element Jacobians, world inertia and (for A) the point
+    accelerations; per element the moments; suffix sums beyond each node (module docstring)."""
+    S, N = l.shape
     Q = xg.shape[0]
     buf = np.empty((3, 5))
     psi0 = np.empty((3, 3))
@@ -340,7 +329,7 @@ def _inertia_strands(first, stop, l, w, z, C, R, Dl, Theta, n_elements, xg, wg, 
     B = np.empty((N, 3, 3))
     dtop = np.empty((N, 3, 3))
     dbottom = np.empty((N, 3, 3))
-    for s in range(first, stop):
+    for s in range(S):
         n = n_elements[s]
         for a in range(3):
             om[a] = root_om[s, a]
@@ -511,30 +500,24 @@ def _inertia_strands(first, stop, l, w, z, C, R, Dl, Theta, n_elements, xg, wg, 
                                       + Tk[2, a] * dbottom[k, 2, b]) + owne[k, a, b]
 
 
-@njit(cache=True, parallel=True)
-def _dense_from_generators(diag, later, earlier, n_elements, M):
-    """M[s] (3N, 3N) with blocks M_jj = diag_j, M_jk = earlier_j^T later_k = M_kj^T (j < k) (MassGenerators), the
-    strands in parallel."""
-    for s in prange(diag.shape[0]):
-        _dense_from_generators_strand(s, diag, later, earlier, n_elements, M)
-
-
 @njit(cache=True)
-def _dense_from_generators_strand(s, diag, later, earlier, n_elements, M):
+def _dense_from_generators(diag, later, earlier, n_elements, M):
+    """M[s] (3N, 3N) with blocks M_jj = diag_j, M_jk = earlier_j^T later_k = M_kj^T (j < k) (MassGenerators)."""
     r = later.shape[2]
-    n = n_elements[s]
-    for j in range(n):
-        for a in range(3):
-            for b in range(3):
-                M[s, 3 * j + a, 3 * j + b] = diag[s, j, a, b]
-        for k in range(j + 1, n):
+    for s in range(diag.shape[0]):
+        n = n_elements[s]
+        for j in range(n):
             for a in range(3):
                 for b in range(3):
-                    v = 0.0
-                    for c in range(r):
-                        v += earlier[s, j, c, a] * later[s, k, c, b]
-                    M[s, 3 * j + a, 3 * k + b] = v
-                    M[s, 3 * k + b, 3 * j + a] = v
+                    M[s, 3 * j + a, 3 * j + b] = diag[s, j, a, b]
+            for k in range(j + 1, n):
+                for a in range(3):
+                    for b in range(3):
+                        v = 0.0
+                        for c in range(r):
+                            v += earlier[s, j, c, a] * later[s, k, c, b]
+                        M[s, 3 * j + a, 3 * k + b] = v
+                        M[s, 3 * k + b, 3 * j + a] = v
 
 
 # --------------------------------------------------------------------------- Super Space Clothoids (the simulator's)

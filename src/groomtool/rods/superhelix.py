@@ -31,15 +31,11 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from numba import njit, prange
+from numba import njit
 
 from .series import _f23_point, _f_point, c_table
 
 E0 = np.array([1.0, 0.0, 0.0])
-# compiled loops that run in parallel (numba prange; NUMBA_NUM_THREADS, numba.set_num_threads) over tasks of this many
-# strands (points); each strand (point) writes only its own outputs, so any thread count gives the same bits
-STRANDS_PER_TASK = 8
-POINTS_PER_TASK = 256
 
 
 # --------------------------------------------------------------------------- small algebra
@@ -483,20 +479,11 @@ def evaluate_positions(helix: SuperHelix, strand, s, kin: Kinematics | None = No
     return pos
 
 
-@njit(cache=True, parallel=True)
-def _position_kernel(C, R, w, strand, elem, t, pos):
-    """_position_kernel_points over all points, POINTS_PER_TASK a task, tasks in parallel."""
-    n = t.shape[0]
-    for task in prange((n + POINTS_PER_TASK - 1) // POINTS_PER_TASK):
-        _position_kernel_points(task * POINTS_PER_TASK, min(n, (task + 1) * POINTS_PER_TASK), C, R, w, strand,
-            elem, t, pos)
-
-
 @njit(cache=True)
-def _position_kernel_points(first, stop, C, R, w, strand, elem, t, pos):
+def _position_kernel(C, R, w, strand, elem, t, pos):
     """C(s) = C_e + R_e (t e0 + c2 w x e0 + c3 w x (w x e0)), as in :func:`_evaluate_kernel`."""
     p = np.empty(3)
-    for i in range(first, stop):
+    for i in range(t.shape[0]):
         k, e, ti = strand[i], elem[i], t[i]
         w0, w1, w2 = w[k, e, 0], w[k, e, 1], w[k, e, 2]
         z = w0 * w0 + w1 * w1 + w2 * w2
