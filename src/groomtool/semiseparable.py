@@ -18,14 +18,13 @@ costs O(E r^2), stores 9 + 3 r numbers per element, and A x = y is solved in O(E
     forward   z_k = L_kk^-1 (y_k - later_k^T t_k),      t_k = sum_{j<k} W_j z_j,
     backward  x_j = L_jj^-T (z_j - W_j^T s_j),           s_j = sum_{k>j} later_k x_k.
 
-Several strands are stored back to back: element arrays (E_total, ...) and element offsets ``offsets`` (S + 1,);
-a strand's dofs are 3 e0 .. 3 e1 of the flat vector (3 per element, in element order).  The njit functions
-(``factor_strand``, ``solve_strand``, ...) work on one strand and are meant to be called from other kernels.
+Several strands are stored back to back: element arrays (E_total, ...), strand s on elements e0 .. e1 - 1; its
+dofs are 3 e0 .. 3 e1 of the flat vector (3 per element, in element order).  The njit functions work on one
+strand and are called from the kernels that own the strands' matrices (solvers/admm_structured.py,
+simulate_linalg.py, stability.py); tests/reference/semiseparable.py batches them over strands for the tests.
 """
 
 from __future__ import annotations
-
-from dataclasses import dataclass
 
 import numpy as np
 from numba import njit
@@ -174,92 +173,3 @@ def matvec_strand(diag, later, earlier, e0, e1, x, y):
         y[i] += v0
         y[i + 1] += v1
         y[i + 2] += v2
-
-
-@njit(cache=True, error_model="numpy")
-def _factor_all(diag, later, earlier, offsets, L, W, ok):
-    for s in range(offsets.shape[0] - 1):
-        ok[s] = factor_strand(diag, later, earlier, offsets[s], offsets[s + 1], L, W)
-
-
-@njit(cache=True, error_model="numpy")
-def _solve_all(L, W, later, offsets, ok, rhs):
-    """rhs (3 E, m) <- A^-1 rhs, column by column, strand by strand (strands not ok: NaN)."""
-    m = rhs.shape[1]
-    for s in range(offsets.shape[0] - 1):
-        e0, e1 = offsets[s], offsets[s + 1]
-        y = np.empty(3 * (e1 - e0))
-        for c in range(m):
-            for i in range(3 * (e1 - e0)):
-                y[i] = rhs[3 * e0 + i, c]
-            if ok[s]:
-                solve_strand(L, W, later, e0, e1, y)
-            else:
-                y[:] = np.nan
-            for i in range(3 * (e1 - e0)):
-                rhs[3 * e0 + i, c] = y[i]
-
-
-@njit(cache=True, error_model="numpy")
-def _matvec_all(diag, later, earlier, offsets, x, out):
-    for s in range(offsets.shape[0] - 1):
-        e0, e1 = offsets[s], offsets[s + 1]
-        matvec_strand(diag, later, earlier, e0, e1, x[3 * e0:3 * e1], out[3 * e0:3 * e1])
-
-
-def _as_blocks(a, name: str, r: int | None = None) -> np.ndarray:
-    a = np.ascontiguousarray(a, dtype=np.float64)
-    if a.ndim != 3 or a.shape[2] != 3 or (r is not None and a.shape[1] != r):
-        raise ValueError(f"{name}: expected shape (E, {r if r is not None else 'r'}, 3), got {a.shape}")
-    return a
-
-
-@dataclass
-class SemiseparableFactor:
-    """A = L L^T of the strands of ``offsets`` (module docstring): pivots L (E, 3, 3), W (E, r, 3), the matrix's
-    ``later`` generators (kept by reference), ``ok`` (S,): False for a strand whose matrix is not positive
-    definite (its solves give NaN)."""
-
-    L: np.ndarray
-    W: np.ndarray
-    later: np.ndarray
-    offsets: np.ndarray
-    ok: np.ndarray
-
-    def solve(self, rhs) -> np.ndarray:
-        """A^-1 rhs for rhs (3 E,) or (3 E, m)."""
-        rhs = np.asarray(rhs, dtype=np.float64)
-        out = np.array(rhs if rhs.ndim == 2 else rhs[:, None], dtype=np.float64, order="C")
-        if out.shape[0] != 3 * self.L.shape[0]:
-            raise ValueError(f"rhs has {out.shape[0]} rows; the factor has {3 * self.L.shape[0]} dofs")
-        _solve_all(self.L, self.W, self.later, self.offsets, self.ok, out)
-        return out.reshape(rhs.shape)
-
-
-def factor(diag, later, earlier, offsets) -> SemiseparableFactor:
-    """Cholesky factors of the strands' matrices A_jj = diag_j, A_kj = later_k^T earlier_j (k > j): diag (E, 3, 3),
-    later and earlier (E, r, 3), element offsets (S + 1,)."""
-    diag = _as_blocks(diag, "diag")
-    later = _as_blocks(later, "later")
-    earlier = _as_blocks(earlier, "earlier", later.shape[1])
-    if diag.shape[1] != 3 or len(diag) != len(later) or len(later) != len(earlier):
-        raise ValueError(f"diag {diag.shape}, later {later.shape} and earlier {earlier.shape} do not match")
-    offsets = np.ascontiguousarray(offsets, dtype=np.int64)
-    if offsets[0] != 0 or offsets[-1] != len(diag) or np.any(np.diff(offsets) < 0):
-        raise ValueError(f"offsets must rise from 0 to {len(diag)}")
-    L = np.zeros_like(diag)
-    W = np.zeros_like(later)
-    ok = np.zeros(len(offsets) - 1, dtype=np.bool_)
-    _factor_all(diag, later, earlier, offsets, L, W, ok)
-    return SemiseparableFactor(L, W, later, offsets, ok)
-
-
-def matvec(diag, later, earlier, offsets, x) -> np.ndarray:
-    """A x for the strands' matrices (``factor``'s arguments), x (3 E,)."""
-    diag = _as_blocks(diag, "diag")
-    later = _as_blocks(later, "later")
-    earlier = _as_blocks(earlier, "earlier", later.shape[1])
-    x = np.ascontiguousarray(x, dtype=np.float64)
-    out = np.empty_like(x)
-    _matvec_all(diag, later, earlier, np.ascontiguousarray(offsets, dtype=np.int64), x, out)
-    return out
