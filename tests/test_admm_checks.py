@@ -34,8 +34,11 @@ def test_checks_through_the_generators_equal_the_csr_checks(seed, mu, check_ever
         got = _bounds(P, r, u, h, HTr, c)
         ref = _bounds(P, r, u_ref, h)
         y = np.linalg.norm(np.sqrt(P.D_data) * (P.H.T @ r))
-        for a, b in zip(got, ref):  # square roots of gaps: the gaps agree to round-off of |y|^2
-            assert abs(a * a - b * b) <= 1e-8 * b * b + 1e-13 * y * y
+        # square roots of gaps: the gaps agree to their round-off, a sum over the dofs and contacts of terms of the
+        # size of |y|^2 (near convergence the gaps themselves are round-off: ~4e-13 |y|^2 on seed 2049, mu 0)
+        roundoff = 32 * np.finfo(float).eps * (P.n_dofs + P.n_contacts) * y * y
+        for a, b in zip(got, ref):
+            assert abs(a * a - b * b) <= 1e-8 * b * b + roundoff
         seen.append(got)
         return False
 
