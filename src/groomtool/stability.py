@@ -390,11 +390,11 @@ def _lambda_max_batch(u, v, d, n_elements, rtol, atol_eps, max_steps, lanczos_st
 def _projected_form(d, later, earlier, N, Q, beta):
     """The semiseparable form of B = P A P - beta Q^T Q, P = I - Q^T Q (Q: k orthonormal rows):
 
-        B = A - (Q^T Z^T + Z Q),   Z = A Q^T - Q^T (Q A Q^T - beta I) / 2   (n x k),
+        B = A - (Q^T Y^T + Y Q),   Y = A Q^T - Q^T (Q A Q^T - beta I) / 2   (n x k),
 
-    so B's lower blocks take 2 k more generator rows (-q_i, -z_i in later; z_i, q_i in earlier) and its diagonal
-    blocks d_j - sum_i (q_ij z_ij^T + z_ij q_ij^T).  B is Z^T A Z on null(Q) and -beta I on its complement, so
-    lambda_max(B) = lambda_max(A on null(Q)) when beta exceeds |lambda| of A's restriction."""
+    so B's lower blocks take 2 k more generator rows (-q_i, -y_i in later; y_i, q_i in earlier) and its diagonal
+    blocks d_j - sum_i (q_ij y_ij^T + y_ij q_ij^T).  B is A restricted to null(Q) there and -beta I on its
+    complement, so lambda_max(B) = lambda_max(A on null(Q)) when beta exceeds |lambda| of that restriction."""
     n = 3 * N
     k = Q.shape[0]
     r = later.shape[1]
@@ -406,7 +406,7 @@ def _projected_form(d, later, earlier, N, Q, beta):
     T = Q @ AQ
     for i in range(k):
         T[i, i] -= beta
-    Z = AQ - 0.5 * (Q.T @ T)
+    Y = AQ - 0.5 * (Q.T @ T)
     later_b = np.empty((N, r + 2 * k, 3))
     earlier_b = np.empty((N, r + 2 * k, 3))
     d_b = np.empty((N, 3, 3))
@@ -417,13 +417,13 @@ def _projected_form(d, later, earlier, N, Q, beta):
                 earlier_b[j, a, c] = earlier[j, a, c]
             for i in range(k):
                 later_b[j, r + i, c] = -Q[i, 3 * j + c]
-                later_b[j, r + k + i, c] = -Z[3 * j + c, i]
-                earlier_b[j, r + i, c] = Z[3 * j + c, i]
+                later_b[j, r + k + i, c] = -Y[3 * j + c, i]
+                earlier_b[j, r + i, c] = Y[3 * j + c, i]
                 earlier_b[j, r + k + i, c] = Q[i, 3 * j + c]
             for e in range(3):
                 acc = d[j, c, e]
                 for i in range(k):
-                    acc -= Q[i, 3 * j + c] * Z[3 * j + e, i] + Z[3 * j + c, i] * Q[i, 3 * j + e]
+                    acc -= Q[i, 3 * j + c] * Y[3 * j + e, i] + Y[3 * j + c, i] * Q[i, 3 * j + e]
                 d_b[j, c, e] = acc
     return d_b, later_b, earlier_b
 
