@@ -58,6 +58,11 @@ def test_factor_is_the_dense_cholesky_factor_and_solves_match(seed, sizes, r):
         np.testing.assert_allclose(z, np.linalg.solve(L, rhs[sl, 1]), rtol=0, atol=1e-9 * np.abs(z).max())
         ss.solve_upper_strand(f.L, f.W, later, e0, e1, z)
         np.testing.assert_allclose(z, ref[:, 1], rtol=0, atol=1e-9 * np.abs(ref).max())
+        w = rhs[sl, 1].copy()
+        ss.apply_upper_strand(f.L, f.W, later, e0, e1, w)
+        np.testing.assert_allclose(w, L.T @ rhs[sl, 1], rtol=0, atol=1e-10 * np.abs(L).max() * np.abs(rhs).sum())
+        ss.apply_lower_strand(f.L, f.W, later, e0, e1, w)  # L L^T y = A y
+        np.testing.assert_allclose(w, A @ rhs[sl, 1], rtol=0, atol=1e-10 * np.abs(A).max() * np.abs(rhs).sum())
     assert x.shape == rhs.shape
     np.testing.assert_allclose(f.solve(rhs[:, 0]), x[:, 0], rtol=0, atol=0)
 

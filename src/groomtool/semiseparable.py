@@ -13,7 +13,7 @@ section 12).  Its Cholesky factor A = L L^T keeps the form,
     W_j = (earlier_j - Sigma_j later_j) L_jj^-T,   Sigma_1 = 0,   Sigma_{j+1} = Sigma_j + W_j W_j^T,
 
 (check: sum_{l<=j} L_kl L_jl^T = later_k^T (Sigma_j later_j + W_j L_jj^T) = later_k^T earlier_j), so a factor
-costs O(E r^2), stores 9 + 3 r numbers per element, and A x = y is solved in O(E r):
+costs O(E r^2), stores 9 + 3 r numbers per element, and A x = y is solved (L y and L^T y applied) in O(E r):
 
     forward   z_k = L_kk^-1 (y_k - later_k^T t_k),      t_k = sum_{j<k} W_j z_j,
     backward  x_j = L_jj^-T (z_j - W_j^T s_j),           s_j = sum_{k>j} later_k x_k.
@@ -139,6 +139,40 @@ def solve_strand(L, W, later, e0, e1, y):
     """y <- A^-1 y = L^-T L^-1 y in place (y: the strand's 3 (e1 - e0) entries)."""
     solve_lower_strand(L, W, later, e0, e1, y)
     solve_upper_strand(L, W, later, e0, e1, y)
+
+
+@njit(cache=True, error_model="numpy")
+def apply_upper_strand(L, W, later, e0, e1, y):
+    """y <- L^T y in place: (L^T y)_j = L_jj^T y_j + W_j^T sum_{k>j} later_k y_k."""
+    r = W.shape[1]
+    acc = np.zeros(r)
+    for j in range(e1 - 1, e0 - 1, -1):
+        i = 3 * (j - e0)
+        y0, y1, y2 = y[i], y[i + 1], y[i + 2]
+        for c in range(3):
+            v = L[j, 0, c] * y0 + L[j, 1, c] * y1 + L[j, 2, c] * y2
+            for a in range(r):
+                v += W[j, a, c] * acc[a]
+            y[i + c] = v
+        for a in range(r):
+            acc[a] += later[j, a, 0] * y0 + later[j, a, 1] * y1 + later[j, a, 2] * y2
+
+
+@njit(cache=True, error_model="numpy")
+def apply_lower_strand(L, W, later, e0, e1, y):
+    """y <- L y in place: (L y)_k = L_kk y_k + later_k^T sum_{j<k} W_j y_j."""
+    r = W.shape[1]
+    acc = np.zeros(r)
+    for k in range(e0, e1):
+        i = 3 * (k - e0)
+        y0, y1, y2 = y[i], y[i + 1], y[i + 2]
+        for c in range(3):
+            v = L[k, c, 0] * y0 + L[k, c, 1] * y1 + L[k, c, 2] * y2
+            for a in range(r):
+                v += later[k, a, c] * acc[a]
+            y[i + c] = v
+        for a in range(r):
+            acc[a] += W[k, a, 0] * y0 + W[k, a, 1] * y1 + W[k, a, 2] * y2
 
 
 @njit(cache=True, error_model="numpy")

@@ -16,7 +16,8 @@ from numba import njit
 from scipy.linalg import lapack
 
 from .rods.dynamics import MassGenerators
-from .semiseparable import factor_strand, matvec_strand, solve_lower_strand, solve_upper_strand
+from .semiseparable import (apply_lower_strand, apply_upper_strand, factor_strand, matvec_strand, solve_lower_strand,
+                            solve_upper_strand)
 
 
 def _cholesky(a: np.ndarray) -> np.ndarray | None:
@@ -394,8 +395,8 @@ def _apply_kernel(data, ptr, sizes, structured, elem_ptr, L3, W, V, x, out):
         if structured[s]:
             e0, e1 = elem_ptr[s], elem_ptr[s + 1]
             y = x[s, :n][::-1].copy()
-            _upper_apply_strand(L3, W, V, e0, e1, y)
-            _lower_apply_strand(L3, W, V, e0, e1, y)
+            apply_upper_strand(L3, W, V, e0, e1, y)
+            apply_lower_strand(L3, W, V, e0, e1, y)
             for i in range(n):
                 out[s, n - 1 - i] = y[i]
             continue
@@ -412,40 +413,6 @@ def _apply_kernel(data, ptr, sizes, structured, elem_ptr, L3, W, V, x, out):
             for k in range(i + 1):
                 acc += L[r + k] * y[k]
             out[s, n - 1 - i] = acc
-
-
-@njit(cache=True)
-def _upper_apply_strand(L3, W, V, e0, e1, y):
-    """y <- L^T y in place for the semiseparable L (StrandFactors): (L^T y)_j = L_jj^T y_j + W_j^T sum_{k>j} V_k y_k."""
-    r = W.shape[1]
-    acc = np.zeros(r)
-    for j in range(e1 - 1, e0 - 1, -1):
-        i = 3 * (j - e0)
-        y0, y1, y2 = y[i], y[i + 1], y[i + 2]
-        for c in range(3):
-            v = L3[j, 0, c] * y0 + L3[j, 1, c] * y1 + L3[j, 2, c] * y2
-            for a in range(r):
-                v += W[j, a, c] * acc[a]
-            y[i + c] = v
-        for a in range(r):
-            acc[a] += V[j, a, 0] * y0 + V[j, a, 1] * y1 + V[j, a, 2] * y2
-
-
-@njit(cache=True)
-def _lower_apply_strand(L3, W, V, e0, e1, y):
-    """y <- L y in place for the semiseparable L (StrandFactors): (L y)_k = L_kk y_k + V_k^T sum_{j<k} W_j y_j."""
-    r = W.shape[1]
-    acc = np.zeros(r)
-    for k in range(e0, e1):
-        i = 3 * (k - e0)
-        y0, y1, y2 = y[i], y[i + 1], y[i + 2]
-        for c in range(3):
-            v = L3[k, c, 0] * y0 + L3[k, c, 1] * y1 + L3[k, c, 2] * y2
-            for a in range(r):
-                v += V[k, a, c] * acc[a]
-            y[i + c] = v
-        for a in range(r):
-            acc[a] += W[k, a, 0] * y0 + W[k, a, 1] * y1 + W[k, a, 2] * y2
 
 
 @njit(cache=True)
