@@ -62,18 +62,22 @@ def best(fn, repeat: int) -> float:
     return min(times)
 
 
+def step_inputs(helix):
+    """What both step-matrix paths take for ``helix`` with the default material: (inertia, kinematics, gravity's
+    dF/dq generators, its left factor, element counts, the keyword arguments of dt^2 K and -dt^2 dF/dq)."""
+    mat = Material()
+    kin = sh.kinematics(helix)
+    parts = sh.gravity_force_jacobian_parts(helix, mat.linear_density, GRAVITY, kin)
+    kw = dict(stiffness=sh.stiffness(helix, mat.stiffness_diag), k_scale=DT * DT, b_scale=-DT * DT)
+    return (dyn.Inertia.from_material(mat), kin, parts, gravity_jacobian_left(mat.linear_density, GRAVITY),
+            helix.n_elements, kw)
+
+
 def measure_corrected(N: int, S: int, repeat: int) -> dict:
     """Strands that (mostly) need the unstable-mode correction, with their kept corrections (a step after the first):
     factor_step_matrix on M against factor_step_generators (whose dense path skips the dense test of a/2 + b)."""
     helix = strands(S, N, corrected=True)
-    mat = Material()
-    inertia = dyn.Inertia.from_material(mat)
-    kin = sh.kinematics(helix)
-    parts = sh.gravity_force_jacobian_parts(helix, mat.linear_density, GRAVITY, kin)
-    K = sh.stiffness(helix, mat.stiffness_diag)
-    left = gravity_jacobian_left(mat.linear_density, GRAVITY)
-    counts = helix.n_elements
-    kw = dict(stiffness=K, k_scale=DT * DT, b_scale=-DT * DT)
+    inertia, kin, parts, left, counts, kw = step_inputs(helix)
     corr_d, corr_s = StepCorrections(S), StepCorrections(S)
     dense, structured = StrandFactors(counts), StrandFactors(counts)
 
@@ -95,14 +99,7 @@ def measure_corrected(N: int, S: int, repeat: int) -> dict:
 
 def measure(N: int, S: int, repeat: int) -> dict:
     helix = strands(S, N)
-    mat = Material()
-    inertia = dyn.Inertia.from_material(mat)
-    kin = sh.kinematics(helix)
-    parts = sh.gravity_force_jacobian_parts(helix, mat.linear_density, GRAVITY, kin)
-    K = sh.stiffness(helix, mat.stiffness_diag)
-    left = gravity_jacobian_left(mat.linear_density, GRAVITY)
-    counts = helix.n_elements
-    kw = dict(stiffness=K, k_scale=DT * DT, b_scale=-DT * DT)
+    inertia, kin, parts, left, counts, kw = step_inputs(helix)
     dense = StrandFactors(counts)
     structured = StrandFactors(counts)
 

@@ -13,15 +13,7 @@ from groomtool.rods import superhelix as sh
 from groomtool.simulate_linalg import (StepCorrections, StrandFactors, factor_step_generators, factor_step_matrix,
                                        gravity_jacobian_left, mass_apply)
 from reference import dynamics as ref
-
-GRAVITY = np.array([0.0, -9.81, 0.0])
-
-
-def frame(tangent, normal):
-    t = np.asarray(tangent, float) / np.linalg.norm(tangent)
-    n = np.asarray(normal, float) - np.dot(normal, t) * t
-    n /= np.linalg.norm(n)
-    return np.stack([t, n, np.cross(t, n)], axis=1)
+from test_simulate import GRAVITY, frame
 
 
 def random_strands(rng, S, n, scale, length_range, counts=None):
